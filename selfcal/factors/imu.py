@@ -1,0 +1,205 @@
+"""GTSAM factors for IMU intrinsics and inter-IMU calibration: thin adapters around :mod:`selfcal.models.imu`.
+
+Each factor reads its variables from ``Values``, calls the model, and fills right-perturbation Jacobians
+(``x . Exp(xi)`` for Rot3, ``Unit3.retract`` for directions, plain addition for vectors).  Intrinsic blocks that
+are not estimated are passed as fixed values, so one factor serves every model variant the audit tries.
+
+Variable kinds (``gtsam.Values`` types):
+  ``Unit3``   up-direction of a static pose in the sensor frame (specific force at rest is ``g u``)
+  ``Rot3``    ``R_imu0_imu1`` (v_imu0 = R v_imu1)
+  vectors     accel bias (3), accel M upper-triangular entries (6), gyro bias (3), gyro M (9), gyro A (9),
+              time offset dt (1), lever arm r (3), relative biases (3)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from selfcal.models import imu, so3
+
+
+@dataclass(frozen=True)
+class AccelKeys:
+    """Keys of the estimated accelerometer blocks; ``None`` means held at the nominal value."""
+
+    bias: int | None = None
+    M: int | None = None  # 6 upper-triangular entries
+
+
+@dataclass(frozen=True)
+class GyroKeys:
+    bias: int | None = None
+    M: int | None = None  # 9 entries, row-major
+    A: int | None = None  # g-sensitivity, 9 entries, row-major
+
+
+def accel_from_values(values, keys: AccelKeys, nominal: imu.AccelIntrinsics) -> imu.AccelIntrinsics:
+    return imu.AccelIntrinsics(
+        M=imu.upper_triangular(values.atVector(keys.M)) if keys.M is not None else nominal.M,
+        bias=values.atVector(keys.bias) if keys.bias is not None else nominal.bias)
+
+
+def gyro_from_values(values, keys: GyroKeys, nominal: imu.GyroIntrinsics) -> imu.GyroIntrinsics:
+    return imu.GyroIntrinsics(
+        M=values.atVector(keys.M).reshape(3, 3) if keys.M is not None else nominal.M,
+        bias=values.atVector(keys.bias) if keys.bias is not None else nominal.bias,
+        A=values.atVector(keys.A).reshape(3, 3) if keys.A is not None else nominal.A)
+
+
+def _present(*pairs):
+    """Keys and Jacobian blocks of the estimated blocks only, in a fixed order."""
+    return [(k, J) for k, J in pairs if k is not None]
+
+
+def static_accel_factor(noise, a_raw_mean, gravity_m_s2, up_key, keys: AccelKeys,
+                        nominal: imu.AccelIntrinsics) -> gtsam.CustomFactor:
+    """Static pose: ``e = M_a (a_raw_mean - b_a) - g u``  (m s^-2, sensor frame)."""
+    a = np.asarray(a_raw_mean, dtype=float)
+    ordered = [up_key] + [k for k in (keys.bias, keys.M) if k is not None]
+
+    def error(this, values, H):
+        cal = accel_from_values(values, keys, nominal)
+        up = values.atUnit3(up_key)
+        d = a - cal.bias
+        e = cal.M @ d - gravity_m_s2 * up.point3()
+        if H is not None:
+            dM = np.zeros((3, 6))
+            for col, (i, j) in enumerate(imu.UPPER_TRIANGULAR_INDEX):
+                dM[i, col] = d[j]
+            blocks = [(up_key, -gravity_m_s2 * up.basis())] + _present((keys.bias, -cal.M), (keys.M, dM))
+            for n, (_, J) in enumerate(blocks):
+                H[n] = J
+        return e
+
+    return gtsam.CustomFactor(noise, ordered, error)
+
+
+def static_gyro_factor(noise, w_raw_mean, gravity_m_s2, up_key, keys: GyroKeys,
+                       nominal: imu.GyroIntrinsics) -> gtsam.CustomFactor:
+    """Static pose, zero rotation: ``e = w_raw_mean - b_g - A g u``  (rad s^-1, raw frame).
+
+    Earth rotation (7.3e-5 rad/s) is not modelled: it is below the bias stability of the MEMS gyros this
+    targets; for a navigation-grade gyro it would appear in the audit as an orientation-dependent bias.
+    """
+    w = np.asarray(w_raw_mean, dtype=float)
+    ordered = [up_key] + [k for k in (keys.bias, keys.A) if k is not None]
+
+    def error(this, values, H):
+        cal = gyro_from_values(values, keys, nominal)
+        up = values.atUnit3(up_key)
+        f = gravity_m_s2 * up.point3()
+        e = w - cal.bias - cal.A @ f
+        if H is not None:
+            dA = -np.kron(np.eye(3), f[None, :])
+            blocks = [(up_key, -gravity_m_s2 * cal.A @ up.basis())] + _present(
+                (keys.bias, -np.eye(3)), (keys.A, dA))
+            for n, (_, J) in enumerate(blocks):
+                H[n] = J
+        return e
+
+    return gtsam.CustomFactor(noise, ordered, error)
+
+
+def gyro_motion_factor(noise, w_raw, f_S, dt_s, up_key_start, up_key_end, keys: GyroKeys,
+                       nominal: imu.GyroIntrinsics) -> gtsam.CustomFactor:
+    """Move between two static poses: the integrated gyro must carry the start up-direction onto the end one.
+
+    ``e = u_end - delta_R^T u_start`` with ``delta_R`` = body(start) <- body(end) integrated from the
+    calibrated rates (dimensionless chord between unit vectors, ~ rad for small errors).
+    ``f_S`` is the specific force during the move (from the accelerometer), used only by the A f term.
+    """
+    w_raw, f_S, dt_s = (np.asarray(x, dtype=float) for x in (w_raw, f_S, dt_s))
+    ordered = [up_key_start, up_key_end] + [k for k in (keys.bias, keys.M, keys.A) if k is not None]
+
+    def error(this, values, H):
+        cal = gyro_from_values(values, keys, nominal)
+        u0, u1 = values.atUnit3(up_key_start), values.atUnit3(up_key_end)
+        if H is None:
+            delta_R = so3.integrate_rates(imu.gyro_rates_and_jacobians(w_raw, f_S, cal)[0], dt_s)
+            return u1.point3() - delta_R.T @ u0.point3()
+        delta_R, (J_bias, J_M, J_A) = imu.relative_rotation_and_jacobians(w_raw, f_S, dt_s, cal)
+        v = delta_R.T @ u0.point3()
+        # delta_R Exp(J d): v -> Exp(-J d) v = v + [v]x J d, so de/dd = -[v]x J
+        minus_v_hat = -so3.hat(v)
+        blocks = [(up_key_start, -delta_R.T @ u0.basis()), (up_key_end, u1.basis())] + _present(
+            (keys.bias, minus_v_hat @ J_bias), (keys.M, minus_v_hat @ J_M), (keys.A, minus_v_hat @ J_A))
+        for n, (_, J) in enumerate(blocks):
+            H[n] = J
+        return u1.point3() - v
+
+    return gtsam.CustomFactor(noise, ordered, error)
+
+
+# --- two IMUs -----------------------------------------------------------------------------------------------
+
+def static_pair_factor(noise, v0, v1, rotation_key, offset_key=None) -> gtsam.CustomFactor:
+    """Same static vector seen by both IMUs (the patent's residual): ``e = v0 - R v1 - d``.
+
+    ``v0``, ``v1``: mean accelerometer outputs of one static pose (m s^-2); ``d`` an optional relative bias
+    (imu0 frame).  Right perturbation R Exp(xi): d(-R v1)/dxi = R [v1]x.
+    """
+    v0, v1 = np.asarray(v0, dtype=float), np.asarray(v1, dtype=float)
+    ordered = [rotation_key] + ([offset_key] if offset_key is not None else [])
+
+    def error(this, values, H):
+        R = values.atRot3(rotation_key).matrix()
+        e = v0 - R @ v1
+        if offset_key is not None:
+            e = e - values.atVector(offset_key)
+        if H is not None:
+            H[0] = R @ so3.hat(v1)
+            if offset_key is not None:
+                H[1] = -np.eye(3)
+        return e
+
+    return gtsam.CustomFactor(noise, ordered, error)
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A sampled 3-axis signal on its own clock, linearly interpolated; ``slope`` is the interpolant's derivative."""
+
+    t_s: np.ndarray
+    x: np.ndarray
+
+    def at(self, t_s):
+        j = np.clip(np.searchsorted(self.t_s, t_s, side="right") - 1, 0, len(self.t_s) - 2)
+        h = self.t_s[j + 1] - self.t_s[j]
+        slope = (self.x[j + 1] - self.x[j]) / h[:, None]
+        return self.x[j] + slope * (t_s - self.t_s[j])[:, None], slope
+
+
+def dynamic_pair_factor(noise, t0_s, v0, signal1: Signal, rotation_key, time_offset_key=None,
+                        offset_key=None, lever_arm_key=None, w0=None, w_dot0=None) -> gtsam.CustomFactor:
+    """A block of imu0 samples against imu1's signal at the same physical instants.
+
+    ``e_i = v0_i + L_i r - R v1(t0_i - dt) - d`` stacked over the block (3n), with ``t_imu0 = t_imu1 + dt``
+    and, for accelerometers, the lever-arm term ``L_i = [w_dot]x + [w]x^2`` (imu0 frame, from imu0's gyro).
+    For gyros there is no lever arm: angular rate is the same everywhere on a rigid body.
+    """
+    t0_s, v0 = np.asarray(t0_s, dtype=float), np.asarray(v0, dtype=float)
+    L = imu.lever_arm_jacobian(w0, w_dot0) if lever_arm_key is not None else None
+    ordered = [k for k in (rotation_key, time_offset_key, offset_key, lever_arm_key) if k is not None]
+
+    def error(this, values, H):
+        R = values.atRot3(rotation_key).matrix()
+        dt = values.atVector(time_offset_key)[0] if time_offset_key is not None else 0.0
+        v1, slope1 = signal1.at(t0_s - dt)
+        Rv1 = v1 @ R.T
+        e = v0 - Rv1
+        if offset_key is not None:
+            e = e - values.atVector(offset_key)
+        if lever_arm_key is not None:
+            e = e + np.einsum("nij,j->ni", L, values.atVector(lever_arm_key))
+        if H is not None:
+            blocks = [(rotation_key, (R @ so3.hat(v1)).reshape(-1, 3))]
+            blocks += _present((time_offset_key, (slope1 @ R.T).reshape(-1, 1)),
+                               (offset_key, np.tile(-np.eye(3), (len(v0), 1))),
+                               (lever_arm_key, L.reshape(-1, 3) if L is not None else None))
+            for n, (_, J) in enumerate(blocks):
+                H[n] = J
+        return e.reshape(-1)
+
+    return gtsam.CustomFactor(noise, ordered, error)

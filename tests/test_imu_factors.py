@@ -1,0 +1,135 @@
+"""Custom IMU factors: Jacobians at seeded random points, zero error on exact data, both code paths."""
+import gtsam
+import numpy as np
+import pytest
+
+from factor_checks import assert_factor_jacobians
+from selfcal.factors import imu as fimu
+from selfcal.models import imu, so3
+
+G = 9.81
+SEEDS = [1, 2, 3, 4]
+
+
+def random_unit(rng):
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def random_accel(rng):
+    M = imu.upper_triangular([1.01, 0.003, -0.002, 0.99, 0.004, 1.02]) + 0.01 * np.triu(rng.normal(size=(3, 3)))
+    return imu.AccelIntrinsics(M=M, bias=0.1 * rng.normal(size=3))
+
+
+def random_gyro(rng):
+    return imu.GyroIntrinsics(M=np.eye(3) + 0.02 * rng.normal(size=(3, 3)), bias=0.01 * rng.normal(size=3),
+                              A=1e-3 * rng.normal(size=(3, 3)))
+
+
+def unit_noise(dim):
+    return gtsam.noiseModel.Isotropic.Sigma(dim, 0.01)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_static_accel_factor_jacobians_and_exact_zero(seed):
+    rng = np.random.default_rng(seed)
+    cal = random_accel(rng)
+    up = random_unit(rng)
+    a_raw = cal.raw_from_specific_force(G * up[None])[0]
+    keys = fimu.AccelKeys(bias=2, M=3)
+    factor = fimu.static_accel_factor(unit_noise(3), a_raw, G, 1, keys, imu.AccelIntrinsics())
+    truth = {1: gtsam.Unit3(up), 2: cal.bias, 3: imu.upper_triangular_entries(cal.M)}
+    assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-12
+    perturbed = {1: gtsam.Unit3(random_unit(rng)), 2: rng.normal(size=3), 3: rng.normal(size=6)}
+    assert_factor_jacobians(factor, perturbed)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_static_gyro_factor_jacobians_and_exact_zero(seed):
+    rng = np.random.default_rng(seed)
+    cal = random_gyro(rng)
+    up = random_unit(rng)
+    w_raw = cal.raw_from_rate(np.zeros((1, 3)), G * up[None])[0]
+    keys = fimu.GyroKeys(bias=2, A=3)
+    factor = fimu.static_gyro_factor(unit_noise(3), w_raw, G, 1, keys, imu.GyroIntrinsics())
+    truth = {1: gtsam.Unit3(up), 2: cal.bias, 3: cal.A.ravel()}
+    assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-12
+    assert_factor_jacobians(factor, {1: gtsam.Unit3(random_unit(rng)), 2: rng.normal(size=3),
+                                     3: 0.01 * rng.normal(size=9)})
+
+
+def _motion(rng, n=150, rate_hz=100.0):
+    """A smooth rotation sampled at rate_hz; truth defined by the same zero-order-hold integration."""
+    t = np.arange(n) / rate_hz
+    w_S = np.stack([np.sin(2 * np.pi * t / t[-1] * k + rng.uniform(0, 6)) * rng.uniform(0.5, 2)
+                    for k in (1, 2, 3)], axis=1)
+    dt = np.full(n, 1.0 / rate_hz)
+    return w_S, dt
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_gyro_motion_factor_jacobians_and_exact_zero(seed):
+    rng = np.random.default_rng(seed)
+    cal = random_gyro(rng)
+    w_S, dt = _motion(rng)
+    f_S = G * np.tile(random_unit(rng), (len(w_S), 1)) + rng.normal(size=w_S.shape)
+    w_raw = cal.raw_from_rate(w_S, f_S)
+    delta_R = so3.integrate_rates(w_S, dt)
+    u_start = random_unit(rng)
+    u_end = delta_R.T @ u_start
+    keys = fimu.GyroKeys(bias=3, M=4, A=5)
+    factor = fimu.gyro_motion_factor(unit_noise(3), w_raw, f_S, dt, 1, 2, keys, imu.GyroIntrinsics())
+    truth = {1: gtsam.Unit3(u_start), 2: gtsam.Unit3(u_end), 3: cal.bias, 4: cal.M.ravel(), 5: cal.A.ravel()}
+    assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-10
+    perturbed = {1: gtsam.Unit3(random_unit(rng)), 2: gtsam.Unit3(random_unit(rng)),
+                 3: 0.01 * rng.normal(size=3), 4: np.eye(3).ravel() + 0.02 * rng.normal(size=9),
+                 5: 1e-3 * rng.normal(size=9)}
+    assert_factor_jacobians(factor, perturbed, atol=1e-5)
+
+
+def _random_rot3(rng):
+    return gtsam.Rot3.Expmap(rng.normal(size=3))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_static_pair_factor(seed):
+    rng = np.random.default_rng(seed)
+    R = _random_rot3(rng)
+    d = 0.05 * rng.normal(size=3)
+    v1 = G * random_unit(rng)
+    v0 = R.matrix() @ v1 + d
+    factor = fimu.static_pair_factor(unit_noise(3), v0, v1, 1, 2)
+    assert np.max(np.abs(factor.unwhitenedError(_values({1: R, 2: d})))) < 1e-12
+    assert_factor_jacobians(factor, {1: _random_rot3(rng), 2: rng.normal(size=3)})
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_dynamic_pair_factor(seed):
+    """Exact data: imu1 sampled on its own clock, lever arm and relative bias; zero error at the truth."""
+    rng = np.random.default_rng(seed)
+    R = _random_rot3(rng)
+    r_m = 0.1 * rng.normal(size=3)
+    d = 0.05 * rng.normal(size=3)
+    dt_true = 0.0123
+    # imu1's signal must be linear between its samples for interpolation to be exact: use a piecewise-linear
+    # specific force in imu0's frame and rates with zero lever-arm effect off the samples (w, w_dot constant).
+    t1 = np.arange(0, 2.0, 0.01)
+    f1_in_0 = np.cumsum(rng.normal(size=(len(t1), 3)), axis=0) * 0.1   # specific force at imu1, imu0 frame
+    signal1 = fimu.Signal(t1, f1_in_0 @ R.matrix())                        # rows: R^T f
+    t0 = np.sort(rng.uniform(0.2, 1.8, size=40))
+    w0 = rng.normal(size=(40, 3))
+    w_dot0 = rng.normal(size=(40, 3))
+    f1_at = fimu.Signal(t1, f1_in_0).at(t0 - dt_true)[0]
+    v0 = f1_at - np.einsum("nij,j->ni", imu.lever_arm_jacobian(w0, w_dot0), r_m) + d
+    factor = fimu.dynamic_pair_factor(unit_noise(3 * 40), t0, v0, signal1, 1, 2, 3, 4, w0, w_dot0)
+    truth = {1: R, 2: np.array([dt_true]), 3: d, 4: r_m}
+    assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-10
+    assert_factor_jacobians(factor, {1: _random_rot3(rng), 2: np.array([0.0071]), 3: rng.normal(size=3),
+                                     4: rng.normal(size=3)}, delta=1e-7, atol=1e-4)
+
+
+def _values(variables):
+    values = gtsam.Values()
+    for key, value in variables.items():
+        values.insert(key, value)
+    return values
