@@ -1,0 +1,122 @@
+"""Command line: ``selfcal <verb> ...``.  Parsing, progress and exit codes only; the work is in pipelines/."""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import yaml
+
+log = logging.getLogger("selfcal")
+
+
+class UsageError(Exception):
+    """A mistake in the command line: reported in one line, exit code 1."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse would print the usage and exit 2; we promise one line and exit 1
+        raise UsageError(f"{self.prog}: {message}")
+
+
+def _write_yaml(path, data: dict) -> None:
+    from selfcal.io.atomic import atomic_write_text
+    atomic_write_text(Path(path), yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
+    log.info("wrote %s", path)
+
+
+def _cmd_calibrate_imu(args) -> None:
+    from selfcal.io.recording import read_recording
+    from selfcal.pipelines.imu_calibration import calibrate_imu
+    rec = read_recording(args.recording)
+    names = [args.imu] if args.imu else rec.imu_names()
+    if not names:
+        raise UsageError(f"{args.recording}: no IMU sensor folder in this recording")
+    out = {}
+    for name in names:
+        log.info("calibrating %s ...", name)
+        cal = calibrate_imu(rec, name, gravity_m_s2=args.gravity)
+        print(cal.summary())
+        out[name] = cal.to_dict()
+    if args.out:
+        _write_yaml(args.out, out)
+
+
+def _cmd_calibrate_imu_pair(args) -> None:
+    from selfcal.io.recording import read_recording
+    from selfcal.pipelines.imu_calibration import calibrate_imu_pair
+    rec = read_recording(args.recording)
+    names = rec.imu_names()
+    imu0 = args.imu0 or (names[0] if names else None)
+    imu1 = args.imu1 or (names[1] if len(names) > 1 else None)
+    if imu0 is None or imu1 is None:
+        raise UsageError(f"{args.recording}: needs two IMU sensor folders, found {names}")
+    cal = calibrate_imu_pair(rec, imu0, imu1, lever_arm=args.lever_arm, time_offset=args.time_offset)
+    print(cal.summary())
+    if args.out:
+        _write_yaml(args.out, cal.to_dict())
+
+
+def _cmd_import(args) -> None:
+    from selfcal.io.importers import IMPORTERS
+    from selfcal.io.recording import write_recording
+    if args.kind not in IMPORTERS:
+        raise UsageError(f"unknown dataset kind {args.kind!r}; known: {', '.join(sorted(IMPORTERS))}")
+    rec = IMPORTERS[args.kind](Path(args.source))
+    path = write_recording(rec, Path(args.out), overwrite=args.overwrite)
+    print(f"wrote {path} ({', '.join(rec.sensors)})")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="selfcal", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="progress and diagnostics on stderr")
+    verbs = parser.add_subparsers(dest="verb", required=True, parser_class=_Parser)
+
+    calibrate = verbs.add_parser("calibrate", help="calibrate a sensor system from a recording")
+    systems = calibrate.add_subparsers(dest="system", required=True, parser_class=_Parser)
+    p = systems.add_parser("imu", help="IMU intrinsics from a multi-position recording (no external equipment)")
+    p.add_argument("recording", help="recording folder (ASL layout)")
+    p.add_argument("--imu", help="sensor folder to calibrate (default: every IMU)")
+    p.add_argument("--gravity", type=float, help="local gravity in m s^-2 (default: sensor.yaml, else 9.80665)")
+    p.add_argument("--out", help="calibration YAML to write")
+    p.set_defaults(run=_cmd_calibrate_imu)
+
+    p = systems.add_parser("imu-pair", help="rotation (time offset, lever arm) between two rigidly mounted IMUs")
+    p.add_argument("recording")
+    p.add_argument("--imu0", help="reference IMU (default: first)")
+    p.add_argument("--imu1", help="second IMU (default: second)")
+    p.add_argument("--lever-arm", action=argparse.BooleanOptionalAction, default=None,
+                   help="estimate the lever arm (default: where the data determine it)")
+    p.add_argument("--time-offset", action=argparse.BooleanOptionalAction, default=None,
+                   help="estimate the clock offset (default: where the data determine it)")
+    p.add_argument("--out", help="calibration YAML to write")
+    p.set_defaults(run=_cmd_calibrate_imu_pair)
+
+    p = verbs.add_parser("import", help="convert a public dataset into a recording")
+    p.add_argument("kind", help="dataset kind: imu-tk-xsens, mpu6050-tomisuarez, ansfl-quadrotor")
+    p.add_argument("source", help="dataset file or folder")
+    p.add_argument("out", help="recording folder to write")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(run=_cmd_import)
+    return parser
+
+
+def main(argv=None) -> int:
+    from selfcal.errors import USER_ERRORS
+    try:
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        args.run(args)
+    except (UsageError, *USER_ERRORS) as err:
+        print(f"selfcal: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("selfcal: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

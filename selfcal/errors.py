@@ -1,0 +1,8 @@
+"""The errors a user can cause (bad input, data that cannot determine the model): the CLI reports them in
+one line and exits 1.  Anything else is a bug and keeps its traceback."""
+from selfcal.graphs.solve import DegenerateDataError
+from selfcal.io.recording import RecordingError
+from selfcal.models.static_intervals import TooFewStaticPosesError
+
+USER_ERRORS = (RecordingError, DegenerateDataError, TooFewStaticPosesError, FileNotFoundError, FileExistsError,
+               NotADirectoryError, PermissionError)

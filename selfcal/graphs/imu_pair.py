@@ -1,0 +1,204 @@
+"""Rotation (and clock offset, lever arm, relative biases) between two rigidly mounted IMUs, as a factor graph.
+
+Variables: ``R_imu0_imu1`` (Rot3, v_imu0 = R v_imu1), optional time offset ``dt_s`` (t_imu0 = t_imu1 + dt),
+lever arm ``r_m`` (imu1's position in the imu0 frame), relative accelerometer and gyro offsets (imu0 frame).
+Factors: the patent's static residual ``a0 - R a1`` per static pose, and blocks of dynamic samples (gyro:
+``w0(t) - R w1(t - dt)``; accelerometer: ``a0(t) + L(t) r - R a1(t - dt)``).  Start: Wahba's problem solved
+by SVD (scipy's ``Rotation.align_vectors``) on the same vectors; then Levenberg–Marquardt with a Huber kernel.
+
+Sigmas: each factor group (static, gyro, accelerometer) gets its noise level re-estimated from its own
+residuals after a first solve (variance-component estimation), so reported 1-sigmas follow the data — on
+real rigs vibration, not sensor white noise, sets the residual of the dynamic pairs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from selfcal.factors import imu as fimu
+from selfcal.graphs.solve import DegenerateDataError, marginal_covariances, optimize, robust
+
+ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
+ACCEL_OFFSET, GYRO_OFFSET = gtsam.symbol("o", 0), gtsam.symbol("o", 1)
+GROUPS = ("static", "gyro", "accel")
+
+
+@dataclass
+class StaticPair:
+    accel0: np.ndarray  # mean raw accelerometer output of imu0, m/s^2
+    accel1: np.ndarray
+    sigma: np.ndarray  # 1-sigma of accel0 - R accel1 from the noise of both means, per axis
+
+
+@dataclass
+class DynamicData:
+    """imu0 samples (its clock) and imu1's signals (its clock) for the dynamic pair factors."""
+
+    t0_s: np.ndarray
+    gyro0: np.ndarray
+    accel0: np.ndarray
+    gyro_rate_dot0: np.ndarray  # smoothed angular acceleration of imu0, rad/s^2
+    gyro1: fimu.Signal
+    accel1: fimu.Signal
+    gyro_sigma: float  # per-sample 1-sigma of w0 - R w1 (rad/s)
+    accel_sigma: float  # per-sample 1-sigma of a0 - R a1 (m/s^2)
+    block_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class PairModel:
+    time_offset: bool = True
+    lever_arm: bool = True
+    accel_offset: bool = True
+    gyro_offset: bool = True
+
+
+@dataclass
+class PairEstimate:
+    R_imu0_imu1: np.ndarray
+    rotation_cov_rad2: np.ndarray  # right-perturbation tangent (imu1 axes)
+    time_offset_s: float | None = None
+    time_offset_sigma_s: float | None = None
+    lever_arm_m: np.ndarray | None = None
+    lever_arm_sigma_m: np.ndarray | None = None
+    accel_offset_m_s2: np.ndarray | None = None
+    gyro_offset_rad_s: np.ndarray | None = None
+    residual_rms: dict[str, float] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+def wahba_rotation(vectors0: np.ndarray, vectors1: np.ndarray, weights=None) -> np.ndarray:
+    """R minimising sum w |v0 - R v1|^2 (SVD solution of Wahba's problem, via scipy)."""
+    rotation, _ = Rotation.align_vectors(vectors0, vectors1, weights=weights)
+    return rotation.as_matrix()
+
+
+def coarse_time_offset(t0_s, gyro0, t1_s, gyro1, max_lag_s=0.5) -> float:
+    """dt (t_imu0 = t_imu1 + dt) maximising the correlation of the rotation-invariant |w| signals."""
+    rate = 1.0 / np.median(np.diff(t0_s))
+    grid = np.arange(t0_s[0], t0_s[-1], 1.0 / rate)
+    n0 = np.interp(grid, t0_s, np.linalg.norm(gyro0, axis=1))
+    n1 = np.interp(grid, t1_s, np.linalg.norm(gyro1, axis=1))
+    n0, n1 = n0 - n0.mean(), n1 - n1.mean()
+    lags = np.arange(-int(max_lag_s * rate), int(max_lag_s * rate) + 1)
+    corr = np.array([np.dot(n0[max(0, l):len(n0) + min(0, l)], n1[max(0, -l):len(n1) - max(0, l)]) for l in lags])
+    i = int(np.argmax(corr))
+    if 0 < i < len(lags) - 1:  # parabolic refinement to sub-sample resolution
+        c_m, c_0, c_p = corr[i - 1:i + 2]
+        shift = 0.5 * (c_m - c_p) / (c_m - 2 * c_0 + c_p)
+    else:
+        shift = 0.0
+    return float((lags[i] + shift) / rate)
+
+
+def _blocks(n, t_s, block_s):
+    edges = np.searchsorted(t_s, np.arange(t_s[0], t_s[-1] + block_s, block_s))
+    return [np.arange(a, b) for a, b in zip(edges[:-1], edges[1:]) if b - a >= 3]
+
+
+def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel, scale: dict, huber_k):
+    graph = gtsam.NonlinearFactorGraph()
+    groups = []
+    accel_offset = ACCEL_OFFSET if model.accel_offset else None
+    for pair in static:
+        graph.add(fimu.static_pair_factor(robust(pair.sigma * scale["static"], huber_k), pair.accel0, pair.accel1,
+                                          ROTATION, accel_offset))
+        groups.append("static")
+    if dynamic is not None:
+        dt_key = TIME_OFFSET if model.time_offset else None
+        for idx in _blocks(len(dynamic.t0_s), dynamic.t0_s, dynamic.block_s):
+            n = len(idx)
+            graph.add(fimu.dynamic_pair_factor(
+                robust(np.full(3 * n, dynamic.gyro_sigma * scale["gyro"]), huber_k), dynamic.t0_s[idx],
+                dynamic.gyro0[idx], dynamic.gyro1, ROTATION, dt_key, GYRO_OFFSET if model.gyro_offset else None))
+            groups.append("gyro")
+            graph.add(fimu.dynamic_pair_factor(
+                robust(np.full(3 * n, dynamic.accel_sigma * scale["accel"]), huber_k), dynamic.t0_s[idx],
+                dynamic.accel0[idx], dynamic.accel1, ROTATION, dt_key, accel_offset,
+                LEVER_ARM if model.lever_arm else None, dynamic.gyro0[idx], dynamic.gyro_rate_dot0[idx]))
+            groups.append("accel")
+    return graph, groups
+
+
+def _group_rms(graph, groups, values):
+    """Per factor group: (whitened RMS, which is 1 when the sigmas match the data; RMS in physical units)."""
+    out = {}
+    for g in set(groups):
+        raw, white = [], []
+        for i, name in enumerate(groups):
+            if name == g:
+                factor = graph.at(i)
+                e = factor.unwhitenedError(values)
+                noise = factor.noiseModel()
+                base = noise.noise() if isinstance(noise, gtsam.noiseModel.Robust) else noise
+                raw.append(e)
+                white.append(base.whiten(e))
+        out[g] = (float(np.sqrt(np.mean(np.concatenate(white) ** 2))),
+                  float(np.sqrt(np.mean(np.concatenate(raw) ** 2))))
+    return out
+
+
+def solve_pair(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel = PairModel(),
+               huber_k: float | None = 3.0, reweight: bool = True, initial_dt_s: float = 0.0) -> PairEstimate:
+    """Estimate R_imu0_imu1 and, as the model asks, time offset, lever arm and relative offsets."""
+    if dynamic is None:
+        model = PairModel(False, False, model.accel_offset and len(static) >= 3, False)
+    vectors0 = [p.accel0 for p in static]
+    vectors1 = [p.accel1 for p in static]
+    if dynamic is not None:
+        vectors0 += list(dynamic.gyro0)
+        vectors1 += list(dynamic.gyro1.at(dynamic.t0_s - initial_dt_s)[0])
+    _check_rotation_excitation(np.array(vectors0))
+    values = gtsam.Values()
+    values.insert(ROTATION, gtsam.Rot3(wahba_rotation(np.array(vectors0), np.array(vectors1))))
+    if model.time_offset:
+        values.insert(TIME_OFFSET, np.array([initial_dt_s]))
+    if model.lever_arm:
+        values.insert(LEVER_ARM, np.zeros(3))
+    if model.accel_offset:
+        values.insert(ACCEL_OFFSET, np.zeros(3))
+    if model.gyro_offset:
+        values.insert(GYRO_OFFSET, np.zeros(3))
+
+    scale = {g: 1.0 for g in GROUPS}
+    graph, groups = _build(static, dynamic, model, scale, huber_k)
+    values = optimize(graph, values)
+    if reweight:
+        rms = _group_rms(graph, groups, values)
+        scale = {g: max(rms[g][0], 1e-3) if g in rms else 1.0 for g in GROUPS}
+        graph, groups = _build(static, dynamic, model, scale, huber_k)
+        values = optimize(graph, values)
+
+    keys = [k for k in (ROTATION, TIME_OFFSET, LEVER_ARM) if values.exists(k)]
+    cov = marginal_covariances(graph, values, keys, "the rotation between the IMUs")
+    R = values.atRot3(ROTATION).matrix()
+    rotation_sigma_deg = np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[ROTATION]))))
+    if rotation_sigma_deg > 2.0:
+        raise DegenerateDataError(
+            f"rotation between the IMUs undetermined (sigma {rotation_sigma_deg:.1f} deg): hold the rig still in "
+            "at least two orientations with different gravity directions, or rotate it about two different axes")
+    est = PairEstimate(R_imu0_imu1=R, rotation_cov_rad2=cov[ROTATION])
+    est.residual_rms = {g: physical for g, (_, physical) in _group_rms(graph, groups, values).items()}
+    if model.time_offset:
+        est.time_offset_s = float(values.atVector(TIME_OFFSET)[0])
+        est.time_offset_sigma_s = float(np.sqrt(cov[TIME_OFFSET][0, 0]))
+    if model.lever_arm:
+        est.lever_arm_m = values.atVector(LEVER_ARM)
+        est.lever_arm_sigma_m = np.sqrt(np.diag(cov[LEVER_ARM]))
+    if model.accel_offset:
+        est.accel_offset_m_s2 = values.atVector(ACCEL_OFFSET)
+    if model.gyro_offset:
+        est.gyro_offset_rad_s = values.atVector(GYRO_OFFSET)
+    return est
+
+
+def _check_rotation_excitation(vectors: np.ndarray) -> None:
+    directions = vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+    strong = directions[np.linalg.norm(vectors, axis=1) > 1e-3]
+    if len(strong) < 2 or np.linalg.svd(strong, compute_uv=False)[1] / np.sqrt(len(strong)) < 0.02:
+        raise DegenerateDataError(
+            "all measured vectors are parallel, so the rotation about them is free: hold the rig still in at "
+            "least two orientations with different gravity directions, or rotate it about two different axes")

@@ -1,0 +1,223 @@
+"""Use cases ``selfcal calibrate imu`` and ``selfcal calibrate imu-pair``: recording in, result object out."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from selfcal.factors.imu import Signal
+from selfcal.graphs import imu_intrinsics as gi
+from selfcal.graphs import imu_pair as gp
+from selfcal.io.recording import ImuData, Recording, RecordingError
+from selfcal.models import imu
+from selfcal.models.static_intervals import detect_static_intervals, require_static_poses, static_poses
+
+log = logging.getLogger(__name__)
+
+
+def _nested(a) -> list:
+    return np.asarray(a, dtype=float).tolist()
+
+
+def gravity_of(data: ImuData, override: float | None = None) -> float:
+    return float(override or data.meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2))
+
+
+def segment(data: ImuData, **detector_options):
+    """Static intervals of an IMU recording and the pose statistics, or a clear error if too few."""
+    t_s = data.t_s
+    intervals = detect_static_intervals(t_s, data.accel_m_s2, **detector_options)
+    poses = static_poses(t_s, data.accel_m_s2, data.gyro_rad_s, intervals)
+    require_static_poses(poses, gi.MIN_POSES_FULL_ACCEL)
+    return intervals, poses
+
+
+def intrinsics_problem(data: ImuData, intervals, poses):
+    """Static poses with sigmas of their means, and the moves between consecutive poses."""
+    accel_std = np.median([p.accel_std for p in poses], axis=0)  # pooled: robust to a slightly moving pose
+    gyro_std = np.median([p.gyro_std for p in poses], axis=0)
+    graph_poses = [gi.StaticPose(p.accel_mean, p.gyro_mean, accel_std / np.sqrt(p.n_samples),
+                                 gyro_std / np.sqrt(p.n_samples)) for p in poses]
+    t_s = data.t_s
+    dt_all = np.diff(t_s, append=t_s[-1] + np.median(np.diff(t_s)))
+    moves = []
+    for (_, end), (start, _) in zip(intervals[:-1], intervals[1:]):
+        # the last static sample is held until the first moving one: include it, so the whole move integrates
+        idx = np.arange(end - 1, start)
+        dt = dt_all[idx]
+        moves.append(gi.Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt,
+                             float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2)))))
+    return graph_poses, moves
+
+
+@dataclass
+class ImuCalibration:
+    sensor: str
+    estimate: gi.IntrinsicsEstimate
+    intervals: list
+    gravity_m_s2: float
+    raw_counts: dict | None = None
+
+    def to_dict(self) -> dict:
+        """The calibration YAML contract: f = M (a_raw - bias); w = M (w_raw - bias - A f); 1-sigma each."""
+        e = self.estimate
+        accel_M_sigma = np.zeros((3, 3))
+        if "accel_M" in e.covariance:
+            for s, (i, j) in zip(e.sigma("accel_M"), imu.UPPER_TRIANGULAR_INDEX):
+                accel_M_sigma[i, j] = s
+        accel_scale, accel_angles = imu.scale_and_misalignment(e.accel.M)
+        gyro_scale, _ = imu.scale_and_misalignment(e.gyro.M)
+        out = {
+            "accelerometers": {
+                "M": _nested(e.accel.M), "M_sigma": _nested(accel_M_sigma),
+                "bias": _nested(e.accel.bias), "bias_sigma": _nested(e.sigma("accel_bias")),
+                "scale": _nested(accel_scale), "misalignment_rad": _nested(accel_angles)},
+            "gyroscopes": {
+                "M": _nested(e.gyro.M),
+                "M_sigma": _nested(e.sigma("gyro_M").reshape(3, 3)) if "gyro_M" in e.covariance else None,
+                "bias": _nested(e.gyro.bias), "bias_sigma": _nested(e.sigma("gyro_bias")),
+                "A": _nested(e.gyro.A),
+                "A_sigma": _nested(e.sigma("gyro_A").reshape(3, 3)) if "gyro_A" in e.covariance else None,
+                "scale": _nested(gyro_scale)},
+            "residual_rms": {"accel": float(np.sqrt(np.mean(e.accel_norm_residual_m_s2**2))),
+                             "gyro": float(np.sqrt(np.mean(e.gyro_direction_residual_rad**2)))
+                             if len(e.gyro_direction_residual_rad) else None},
+            "units": {"accel": "m s^-2", "gyro": "rad s^-1", "A": "rad s^-1 per m s^-2",
+                      "residual_rms.gyro": "rad (gravity direction after each move)"},
+            "static_poses": len(self.intervals),
+            "gravity_m_s2": self.gravity_m_s2,
+        }
+        if self.raw_counts:
+            # f = K (counts - offset) / c_nominal along each axis, so the sensitivity is c_nominal / K
+            out["raw_counts"] = {
+                "accelerometer_counts_per_unit": _nested(
+                    np.asarray(self.raw_counts["accelerometer"]["counts_per_unit"]) * (1 + accel_scale)),
+                "gyroscope_counts_per_unit": _nested(
+                    np.asarray(self.raw_counts["gyroscope"]["counts_per_unit"]) * (1 + gyro_scale))}
+        return out
+
+    def summary(self) -> str:
+        d = self.to_dict()
+        return (f"{self.sensor}: {d['static_poses']} static poses; accel scale "
+                f"{np.round(np.array(d['accelerometers']['scale']) * 100, 3)} %, residual |f|-g "
+                f"{d['residual_rms']['accel']:.4g} m/s^2; gyro scale "
+                f"{np.round(np.array(d['gyroscopes']['scale']) * 100, 3)} %, direction residual "
+                f"{np.degrees(d['residual_rms']['gyro'] or 0):.3g} deg")
+
+
+def calibrate_imu(recording: Recording, sensor: str, model: gi.IntrinsicsModel = gi.IntrinsicsModel(),
+                  gravity_m_s2: float | None = None) -> ImuCalibration:
+    data = recording.imu(sensor)
+    intervals, poses = segment(data)
+    graph_poses, moves = intrinsics_problem(data, intervals, poses)
+    g = gravity_of(data, gravity_m_s2)
+    estimate = gi.solve_intrinsics(graph_poses, moves, g, model)
+    return ImuCalibration(sensor, estimate, intervals, g, data.meta.get("raw_counts"))
+
+
+# --- two IMUs -----------------------------------------------------------------------------------------------
+
+@dataclass
+class PairCalibration:
+    imu0: str
+    imu1: str
+    estimate: gp.PairEstimate
+    n_static: int
+    n_dynamic: int
+
+    def to_dict(self) -> dict:
+        e = self.estimate
+        out = {
+            "imu0": self.imu0, "imu1": self.imu1,
+            "rotation_imu0_imu1": _nested(e.R_imu0_imu1),
+            "rotation_sigma_rad": _nested(np.sqrt(np.diag(e.rotation_cov_rad2))),
+            "rotation_convention": "v_imu0 = R v_imu1; sigma on the right-perturbation tangent (imu1 axes)",
+            "time_offset_s": e.time_offset_s, "time_offset_sigma_s": e.time_offset_sigma_s,
+            "time_offset_convention": "t_imu0 = t_imu1 + dt",
+            "lever_arm_m": _nested(e.lever_arm_m) if e.lever_arm_m is not None else None,
+            "lever_arm_sigma_m": _nested(e.lever_arm_sigma_m) if e.lever_arm_sigma_m is not None else None,
+            "residual_rms": e.residual_rms,
+            "static_poses": self.n_static, "dynamic_samples": self.n_dynamic,
+            "notes": e.notes,
+        }
+        return out
+
+    def summary(self) -> str:
+        e = self.estimate
+        angle = np.degrees(np.linalg.norm(imu.so3.log(e.R_imu0_imu1)))
+        sigma = np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(e.rotation_cov_rad2))))
+        lines = [f"{self.imu0} <- {self.imu1}: rotation {angle:.3f} deg (1-sigma {sigma:.3g} deg) from "
+                 f"{self.n_static} static poses and {self.n_dynamic} moving samples"]
+        if e.time_offset_s is not None:
+            lines.append(f"  time offset {e.time_offset_s * 1e3:.3f} ms (1-sigma {e.time_offset_sigma_s * 1e3:.3g} ms)")
+        if e.lever_arm_m is not None:
+            lines.append(f"  lever arm {np.round(e.lever_arm_m, 4)} m (1-sigma {np.round(e.lever_arm_sigma_m, 4)} m)")
+        lines += [f"  note: {n}" for n in e.notes]
+        return "\n".join(lines)
+
+
+def _sample_sigma(data: ImuData, key: str, fallback: float) -> float:
+    density = data.meta.get(key)
+    return float(density * np.sqrt(data.rate_hz)) if density else fallback
+
+
+def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
+                       time_offset: bool | None = None) -> PairCalibration:
+    """Rotation imu0 <- imu1 from the static poses (if any) and the moving parts of the recording.
+
+    ``lever_arm`` / ``time_offset``: True forces, False skips, None estimates where the data determine them
+    (sigma below 5 cm / 5 ms), and says so in the notes otherwise.
+    """
+    d0, d1 = recording.imu(imu0), recording.imu(imu1)
+    t0 = d0.t_s
+    t1 = (d1.t_ns - d0.t_ns[0]) * 1e-9  # imu1 stamps on imu0's time axis, before the offset
+    try:
+        intervals = detect_static_intervals(t0, d0.accel_m_s2)
+    except ValueError:
+        intervals = []
+    static = []
+    moving = np.ones(len(t0), dtype=bool)
+    for start, end in intervals:
+        moving[start:end] = False
+        sel1 = (t1 >= t0[start]) & (t1 < t0[end - 1])
+        if sel1.sum() < 3:
+            continue
+        a0, a1 = d0.accel_m_s2[start:end], d1.accel_m_s2[sel1]
+        sigma = np.sqrt(a0.var(axis=0) / len(a0) + a1.var(axis=0) / len(a1))
+        static.append(gp.StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma))
+    dynamic = None
+    inside = (t0 > t1[0] + 0.5) & (t0 < t1[-1] - 0.5)  # room for any clock offset up to 0.5 s
+    idx = np.flatnonzero(moving & inside)
+    dt0 = 0.0
+    if len(idx) > 50:
+        rate = d0.rate_hz
+        w_dot = savgol_filter(d0.gyro_rad_s, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
+        dt0 = gp.coarse_time_offset(t0, d0.gyro_rad_s, t1, d1.gyro_rad_s)
+        dynamic = gp.DynamicData(
+            t0[idx], d0.gyro_rad_s[idx], d0.accel_m_s2[idx], w_dot[idx], Signal(t1, d1.gyro_rad_s),
+            Signal(t1, d1.accel_m_s2),
+            gyro_sigma=np.hypot(_sample_sigma(d0, "gyroscope_noise_density", 0.01),
+                                _sample_sigma(d1, "gyroscope_noise_density", 0.01)),
+            accel_sigma=np.hypot(_sample_sigma(d0, "accelerometer_noise_density", 0.05),
+                                 _sample_sigma(d1, "accelerometer_noise_density", 0.05)))
+    if not static and dynamic is None:
+        raise gp.DegenerateDataError(f"{imu0}/{imu1}: no static poses and no motion found in the recording")
+    model = gp.PairModel(time_offset=dynamic is not None and time_offset is not False,
+                         lever_arm=dynamic is not None and lever_arm is not False)
+    estimate = gp.solve_pair(static, dynamic, model, initial_dt_s=dt0)
+    weak_dt = model.time_offset and estimate.time_offset_sigma_s > 5e-3
+    weak_r = model.lever_arm and float(np.max(estimate.lever_arm_sigma_m)) > 0.05
+    advice = {"time offset": (weak_dt, "needs rotation whose rate changes quickly (shake or twist the rig)"),
+              "lever arm": (weak_r, "needs rotation rate and angular acceleration about several axes")}
+    forced = {"time offset": time_offset, "lever arm": lever_arm}
+    for name, (weak, hint) in advice.items():
+        if weak and forced[name]:
+            raise gp.DegenerateDataError(f"{imu0}/{imu1}: {name} not determined by this recording: {hint}")
+    if weak_dt or weak_r:
+        model = gp.PairModel(time_offset=model.time_offset and not weak_dt, lever_arm=model.lever_arm and not weak_r)
+        estimate = gp.solve_pair(static, dynamic, model, initial_dt_s=dt0)
+        estimate.notes += [f"{name} not estimated: the data do not determine it ({hint})"
+                           for name, (weak, hint) in advice.items() if weak]
+    return PairCalibration(imu0, imu1, estimate, len(static), 0 if dynamic is None else len(dynamic.t0_s))
