@@ -52,7 +52,8 @@ def _cmd_calibrate_imu_pair(args) -> None:
     imu1 = args.imu1 or (names[1] if len(names) > 1 else None)
     if imu0 is None or imu1 is None:
         raise UsageError(f"{args.recording}: needs two IMU sensor folders, found {names}")
-    cal = calibrate_imu_pair(rec, imu0, imu1, lever_arm=args.lever_arm, time_offset=args.time_offset)
+    cal = calibrate_imu_pair(rec, imu0, imu1, lever_arm=args.lever_arm, time_offset=args.time_offset,
+                             lowpass_hz=args.lowpass_hz or None)
     print(cal.summary())
     if args.out:
         _write_yaml(args.out, cal.to_dict())
@@ -90,6 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="estimate the lever arm (default: where the data determine it)")
     p.add_argument("--time-offset", action=argparse.BooleanOptionalAction, default=None,
                    help="estimate the clock offset (default: where the data determine it)")
+    p.add_argument("--lowpass-hz", type=float, default=5.0,
+                   help="zero-phase low-pass applied to both IMUs before the dynamic pairs, Hz (0: none)")
     p.add_argument("--out", help="calibration YAML to write")
     p.set_defaults(run=_cmd_calibrate_imu_pair)
 

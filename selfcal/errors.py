@@ -2,7 +2,7 @@
 one line and exits 1.  Anything else is a bug and keeps its traceback."""
 from selfcal.graphs.solve import DegenerateDataError
 from selfcal.io.recording import RecordingError
-from selfcal.models.static_intervals import TooFewStaticPosesError
+from selfcal.models.static_intervals import StaticDetectionError, TooFewStaticPosesError
 
-USER_ERRORS = (RecordingError, DegenerateDataError, TooFewStaticPosesError, FileNotFoundError, FileExistsError,
+USER_ERRORS = (RecordingError, DegenerateDataError, TooFewStaticPosesError, StaticDetectionError, FileNotFoundError, FileExistsError,
                NotADirectoryError, PermissionError)

@@ -5,7 +5,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import savgol_filter
+from scipy.signal import butter, savgol_filter, sosfiltfilt
 
 from selfcal.factors.imu import Signal
 from selfcal.graphs import imu_intrinsics as gi
@@ -163,8 +163,30 @@ def _sample_sigma(data: ImuData, key: str, fallback: float) -> float:
     return float(density * np.sqrt(data.rate_hz)) if density else fallback
 
 
+def truly_static_intervals(data: ImuData) -> list[tuple[int, int]]:
+    """Static intervals that are static in absolute terms too, or none.
+
+    The moving-variance detector is relative to the first seconds; a recording that never rests (a flight)
+    would look static throughout.  Keep only intervals whose gyro scatter is within 5 sigma of the gyro's
+    white noise (sensor.yaml), or 0.01 rad/s where the noise is not given.
+    """
+    try:
+        intervals = detect_static_intervals(data.t_s, data.accel_m_s2)
+    except ValueError:
+        return []
+    limit = 5 * _sample_sigma(data, "gyroscope_noise_density", 0.002)
+    return [(a, b) for a, b in intervals if np.max(np.std(data.gyro_rad_s[a:b], axis=0)) < limit]
+
+
+def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> np.ndarray:
+    """Zero-phase 4th-order Butterworth low-pass along time (no filtering when cutoff is None or >= Nyquist)."""
+    if not cutoff_hz or cutoff_hz >= 0.5 * rate_hz:
+        return x
+    return sosfiltfilt(butter(4, cutoff_hz, fs=rate_hz, output="sos"), x, axis=0)
+
+
 def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
-                       time_offset: bool | None = None) -> PairCalibration:
+                       time_offset: bool | None = None, lowpass_hz: float | None = 5.0) -> PairCalibration:
     """Rotation imu0 <- imu1 from the static poses (if any) and the moving parts of the recording.
 
     ``lever_arm`` / ``time_offset``: True forces, False skips, None estimates where the data determine them
@@ -173,10 +195,7 @@ def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bo
     d0, d1 = recording.imu(imu0), recording.imu(imu1)
     t0 = d0.t_s
     t1 = (d1.t_ns - d0.t_ns[0]) * 1e-9  # imu1 stamps on imu0's time axis, before the offset
-    try:
-        intervals = detect_static_intervals(t0, d0.accel_m_s2)
-    except ValueError:
-        intervals = []
+    intervals = truly_static_intervals(d0)
     static = []
     moving = np.ones(len(t0), dtype=bool)
     for start, end in intervals:
@@ -189,15 +208,19 @@ def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bo
         static.append(gp.StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma))
     dynamic = None
     inside = (t0 > t1[0] + 0.5) & (t0 < t1[-1] - 0.5)  # room for any clock offset up to 0.5 s
-    idx = np.flatnonzero(moving & inside)
+    rate = d0.rate_hz
+    # Zero-phase low-pass on both IMUs: the relation w0 = R w1(t - dt) is linear and time-invariant, so it
+    # survives identical filtering, while vibration that differs between mounting points does not pass.
+    g0, a0 = lowpass(d0.gyro_rad_s, rate, lowpass_hz), lowpass(d0.accel_m_s2, rate, lowpass_hz)
+    g1, a1 = lowpass(d1.gyro_rad_s, d1.rate_hz, lowpass_hz), lowpass(d1.accel_m_s2, d1.rate_hz, lowpass_hz)
+    step = max(1, int(rate / (2.5 * lowpass_hz))) if lowpass_hz else 1  # keep ~independent filtered samples
+    idx = np.flatnonzero(moving & inside)[::step]
     dt0 = 0.0
     if len(idx) > 50:
-        rate = d0.rate_hz
-        w_dot = savgol_filter(d0.gyro_rad_s, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
-        dt0 = gp.coarse_time_offset(t0, d0.gyro_rad_s, t1, d1.gyro_rad_s)
+        w_dot = savgol_filter(g0, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
+        dt0 = gp.coarse_time_offset(t0, g0, t1, g1)
         dynamic = gp.DynamicData(
-            t0[idx], d0.gyro_rad_s[idx], d0.accel_m_s2[idx], w_dot[idx], Signal(t1, d1.gyro_rad_s),
-            Signal(t1, d1.accel_m_s2),
+            t0[idx], g0[idx], a0[idx], w_dot[idx], Signal(t1, g1), Signal(t1, a1),
             gyro_sigma=np.hypot(_sample_sigma(d0, "gyroscope_noise_density", 0.01),
                                 _sample_sigma(d1, "gyroscope_noise_density", 0.01)),
             accel_sigma=np.hypot(_sample_sigma(d0, "accelerometer_noise_density", 0.05),

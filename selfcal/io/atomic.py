@@ -1,0 +1,106 @@
+"""Atomic output: a file or folder appears complete under its final name, or not at all.
+
+Everything is first written under a temporary name in the destination folder (same file system, so the final
+``os.replace`` / ``os.rename`` is atomic) and renamed only once it is complete; on failure the temporary is
+removed, so a failed run leaves neither a half file nor a stray temporary behind.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+def _current_umask() -> int:
+    # os.umask can only be read by setting it; done once at import, before any worker threads exist
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
+def atomic_write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder, fsync, ``os.replace``).
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination file; its folder must exist.  An existing file is replaced.
+    data : bytes
+        The complete file content.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp creates 0600; give the file the mode an ordinary open() would have
+        os.chmod(tmp_name, 0o666 & ~_UMASK)
+        os.replace(tmp_name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        raise
+    return path
+
+
+def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
+    """Write ``text`` to ``path`` atomically; see :func:`atomic_write_bytes`."""
+    return atomic_write_bytes(path, text.encode(encoding))
+
+
+@contextlib.contextmanager
+def atomic_directory(path, overwrite: bool = False) -> Iterator[Path]:
+    """Build a folder under a temporary sibling name; rename it to ``path`` only if the block succeeds.
+
+    Parameters
+    ----------
+    path : str or Path
+        Final folder.  Its parent folders are created if missing.
+    overwrite : bool
+        Replace an existing ``path``.  Without it an existing ``path`` raises FileExistsError, before the
+        block runs (so no work is wasted) and again at the rename (in case it appeared meanwhile).
+
+    Yields
+    ------
+    Path
+        The temporary folder to fill.  On an exception it is removed and the exception propagates.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: already exists (pass overwrite=True / --overwrite to replace it)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~_UMASK)  # mkdtemp creates 0700
+        if path.exists() or path.is_symlink():
+            if not overwrite:
+                raise FileExistsError(f"{path}: already exists (pass overwrite=True / --overwrite to replace it)")
+            # a non-empty folder cannot be the target of a rename: move the old one aside first, then drop it
+            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+            os.rename(path, old / "content")
+            try:
+                os.rename(tmp, path)
+            except BaseException:
+                os.rename(old / "content", path)
+                shutil.rmtree(old, ignore_errors=True)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
