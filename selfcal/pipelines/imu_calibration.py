@@ -36,8 +36,10 @@ def segment(data: ImuData, **detector_options):
 
 def intrinsics_problem(data: ImuData, intervals, poses):
     """Static poses with sigmas of their means, and the moves between consecutive poses."""
-    accel_std = np.median([p.accel_std for p in poses], axis=0)  # pooled: robust to a slightly moving pose
-    gyro_std = np.median([p.gyro_std for p in poses], axis=0)
+    # pooled median: robust to one slightly moving pose; a tiny floor keeps noise-free (simulated exact) data
+    # a regular system
+    accel_std = np.maximum(np.median([p.accel_std for p in poses], axis=0), 1e-9)
+    gyro_std = np.maximum(np.median([p.gyro_std for p in poses], axis=0), 1e-9)
     graph_poses = [gi.StaticPose(p.accel_mean, p.gyro_mean, accel_std / np.sqrt(p.n_samples),
                                  gyro_std / np.sqrt(p.n_samples)) for p in poses]
     t_s = data.t_s
@@ -185,20 +187,23 @@ def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> np.ndarra
     return sosfiltfilt(butter(4, cutoff_hz, fs=rate_hz, output="sos"), x, axis=0)
 
 
-def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
-                       time_offset: bool | None = None, lowpass_hz: float | None = 5.0) -> PairCalibration:
-    """Rotation imu0 <- imu1 from the static poses (if any) and the moving parts of the recording.
+@dataclass
+class PairProblem:
+    """The graph's inputs extracted from a recording: static pose pairs, dynamic samples, a start dt."""
 
-    ``lever_arm`` / ``time_offset``: True forces, False skips, None estimates where the data determine them
-    (sigma below 5 cm / 5 ms), and says so in the notes otherwise.
-    """
+    static: list
+    dynamic: gp.DynamicData | None
+    initial_dt_s: float
+
+
+def pair_problem(recording: Recording, imu0: str, imu1: str, lowpass_hz: float | None = 5.0) -> PairProblem:
+    """Static pose pairs (means over imu0's truly static intervals) and the moving samples between them."""
     d0, d1 = recording.imu(imu0), recording.imu(imu1)
     t0 = d0.t_s
     t1 = (d1.t_ns - d0.t_ns[0]) * 1e-9  # imu1 stamps on imu0's time axis, before the offset
-    intervals = truly_static_intervals(d0)
     static = []
     moving = np.ones(len(t0), dtype=bool)
-    for start, end in intervals:
+    for start, end in truly_static_intervals(d0):
         moving[start:end] = False
         sel1 = (t1 >= t0[start]) & (t1 < t0[end - 1])
         if sel1.sum() < 3:
@@ -206,7 +211,6 @@ def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bo
         a0, a1 = d0.accel_m_s2[start:end], d1.accel_m_s2[sel1]
         sigma = np.sqrt(a0.var(axis=0) / len(a0) + a1.var(axis=0) / len(a1))
         static.append(gp.StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma))
-    dynamic = None
     inside = (t0 > t1[0] + 0.5) & (t0 < t1[-1] - 0.5)  # room for any clock offset up to 0.5 s
     rate = d0.rate_hz
     # Zero-phase low-pass on both IMUs: the relation w0 = R w1(t - dt) is linear and time-invariant, so it
@@ -215,16 +219,27 @@ def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bo
     g1, a1 = lowpass(d1.gyro_rad_s, d1.rate_hz, lowpass_hz), lowpass(d1.accel_m_s2, d1.rate_hz, lowpass_hz)
     step = max(1, int(rate / (2.5 * lowpass_hz))) if lowpass_hz else 1  # keep ~independent filtered samples
     idx = np.flatnonzero(moving & inside)[::step]
-    dt0 = 0.0
-    if len(idx) > 50:
-        w_dot = savgol_filter(g0, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
-        dt0 = gp.coarse_time_offset(t0, g0, t1, g1)
-        dynamic = gp.DynamicData(
-            t0[idx], g0[idx], a0[idx], w_dot[idx], Signal(t1, g1), Signal(t1, a1),
-            gyro_sigma=np.hypot(_sample_sigma(d0, "gyroscope_noise_density", 0.01),
-                                _sample_sigma(d1, "gyroscope_noise_density", 0.01)),
-            accel_sigma=np.hypot(_sample_sigma(d0, "accelerometer_noise_density", 0.05),
-                                 _sample_sigma(d1, "accelerometer_noise_density", 0.05)))
+    if len(idx) <= 50:
+        return PairProblem(static, None, 0.0)
+    w_dot = savgol_filter(g0, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
+    dynamic = gp.DynamicData(
+        t0[idx], g0[idx], a0[idx], w_dot[idx], Signal(t1, g1), Signal(t1, a1),
+        gyro_sigma=np.hypot(_sample_sigma(d0, "gyroscope_noise_density", 0.01),
+                            _sample_sigma(d1, "gyroscope_noise_density", 0.01)),
+        accel_sigma=np.hypot(_sample_sigma(d0, "accelerometer_noise_density", 0.05),
+                             _sample_sigma(d1, "accelerometer_noise_density", 0.05)))
+    return PairProblem(static, dynamic, gp.coarse_time_offset(t0, g0, t1, g1))
+
+
+def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
+                       time_offset: bool | None = None, lowpass_hz: float | None = 5.0) -> PairCalibration:
+    """Rotation imu0 <- imu1 from the static poses (if any) and the moving parts of the recording.
+
+    ``lever_arm`` / ``time_offset``: True forces, False skips, None estimates where the data determine them
+    (sigma below 5 cm / 5 ms), and says so in the notes otherwise.
+    """
+    problem = pair_problem(recording, imu0, imu1, lowpass_hz)
+    static, dynamic, dt0 = problem.static, problem.dynamic, problem.initial_dt_s
     if not static and dynamic is None:
         raise gp.DegenerateDataError(f"{imu0}/{imu1}: no static poses and no motion found in the recording")
     model = gp.PairModel(time_offset=dynamic is not None and time_offset is not False,
