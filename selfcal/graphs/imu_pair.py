@@ -31,6 +31,8 @@ class StaticPair:
     accel0: np.ndarray  # mean raw accelerometer output of imu0, m/s^2
     accel1: np.ndarray
     sigma: np.ndarray  # 1-sigma of accel0 - R accel1 from the noise of both means, per axis
+    n_samples0: int = 0
+    n_samples1: int = 0
 
 
 @dataclass
@@ -123,22 +125,65 @@ def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairMod
     return graph, groups
 
 
+def _group_residuals(graph, groups, values) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per factor group, each factor's (unwhitened, whitened) residual."""
+    out: dict[str, list] = {}
+    for i, name in enumerate(groups):
+        factor = graph.at(i)
+        e = factor.unwhitenedError(values)
+        noise = factor.noiseModel()
+        base = noise.noise() if isinstance(noise, gtsam.noiseModel.Robust) else noise
+        out.setdefault(name, []).append((e, base.whiten(e)))
+    return out
+
+
 def _group_rms(graph, groups, values):
     """Per factor group: (whitened RMS, which is 1 when the sigmas match the data; RMS in physical units)."""
-    out = {}
-    for g in set(groups):
-        raw, white = [], []
-        for i, name in enumerate(groups):
-            if name == g:
-                factor = graph.at(i)
-                e = factor.unwhitenedError(values)
-                noise = factor.noiseModel()
-                base = noise.noise() if isinstance(noise, gtsam.noiseModel.Robust) else noise
-                raw.append(e)
-                white.append(base.whiten(e))
-        out[g] = (float(np.sqrt(np.mean(np.concatenate(white) ** 2))),
-                  float(np.sqrt(np.mean(np.concatenate(raw) ** 2))))
-    return out
+    return {g: (float(np.sqrt(np.mean(np.concatenate([w for _, w in r]) ** 2))),
+                float(np.sqrt(np.mean(np.concatenate([e for e, _ in r]) ** 2))))
+            for g, r in _group_residuals(graph, groups, values).items()}
+
+
+def correlation_inflation(blocks: list[np.ndarray], max_lag: int = 10) -> float:
+    """Variance inflation 1 + 2 sum rho_k of residual sequences (n, 3) correlated in time.
+
+    Least squares with per-sample sigmas treats samples as independent; residuals that are correlated
+    (filtered noise, vibration) carry less information, and the covariance must grow by this factor
+    (the effective-sample-size correction; the sum stops at the first non-positive autocorrelation).
+    """
+    inflation = 1.0
+    for k in range(1, max_lag + 1):
+        num = sum(float(np.sum(b[k:] * b[:-k])) for b in blocks if len(b) > k)
+        den = sum(float(np.sum(b * b)) for b in blocks)
+        rho = num / den if den > 0 else 0.0
+        if rho <= 0:
+            break
+        inflation += 2 * rho
+    return inflation
+
+
+def rotation_covariance_at(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel,
+                           values: gtsam.Values) -> np.ndarray:
+    """Marginal covariance of R at given values with the data's stated sigmas (no robust kernel, no reweighting).
+
+    Evaluated at the truth this is the Cramér–Rao bound of the graph's model for this data.
+    """
+    graph, _ = _build(static, dynamic, model, {g: 1.0 for g in GROUPS}, huber_k=None)
+    return marginal_covariances(graph, values, [ROTATION], "the rotation between the IMUs")[ROTATION]
+
+
+def pair_values(R_imu0_imu1, model: PairModel, dt_s=0.0, lever_arm_m=None, accel_offset=None,
+                gyro_offset=None) -> gtsam.Values:
+    """Values for the variables ``model`` estimates (zeros where not given)."""
+    values = gtsam.Values()
+    values.insert(ROTATION, gtsam.Rot3(np.asarray(R_imu0_imu1, dtype=float)))
+    for flag, key, value, dim in ((model.time_offset, TIME_OFFSET, [dt_s], 1),
+                                  (model.lever_arm, LEVER_ARM, lever_arm_m, 3),
+                                  (model.accel_offset, ACCEL_OFFSET, accel_offset, 3),
+                                  (model.gyro_offset, GYRO_OFFSET, gyro_offset, 3)):
+        if flag:
+            values.insert(key, np.zeros(dim) if value is None else np.asarray(value, dtype=float))
+    return values
 
 
 def solve_pair(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel = PairModel(),
@@ -152,23 +197,23 @@ def solve_pair(static: list[StaticPair], dynamic: DynamicData | None, model: Pai
         vectors0 += list(dynamic.gyro0)
         vectors1 += list(dynamic.gyro1.at(dynamic.t0_s - initial_dt_s)[0])
     _check_rotation_excitation(np.array(vectors0))
-    values = gtsam.Values()
-    values.insert(ROTATION, gtsam.Rot3(wahba_rotation(np.array(vectors0), np.array(vectors1))))
-    if model.time_offset:
-        values.insert(TIME_OFFSET, np.array([initial_dt_s]))
-    if model.lever_arm:
-        values.insert(LEVER_ARM, np.zeros(3))
-    if model.accel_offset:
-        values.insert(ACCEL_OFFSET, np.zeros(3))
-    if model.gyro_offset:
-        values.insert(GYRO_OFFSET, np.zeros(3))
-
+    values = pair_values(wahba_rotation(np.array(vectors0), np.array(vectors1)), model, initial_dt_s)
     scale = {g: 1.0 for g in GROUPS}
     graph, groups = _build(static, dynamic, model, scale, huber_k)
     values = optimize(graph, values)
     if reweight:
-        rms = _group_rms(graph, groups, values)
-        scale = {g: max(rms[g][0], 1e-3) if g in rms else 1.0 for g in GROUPS}
+        residuals = _group_residuals(graph, groups, values)
+        scale = {g: 1.0 for g in GROUPS}
+        for g, r in residuals.items():
+            white = np.concatenate([w for _, w in r])
+            if g == "static":
+                # sigmas of static means come from the samples themselves: only inflate them when the residuals
+                # are significantly larger (model error); n - 6 corrects for the rotation and offset fitted
+                dof = max(len(white) - 6, 1)
+                scale[g] = max(1.0, float(np.sqrt(np.sum(white**2) / dof)))
+            else:
+                inflation = correlation_inflation([w.reshape(-1, 3) for _, w in r])
+                scale[g] = max(float(np.sqrt(np.mean(white**2) * inflation)), 1e-3)
         graph, groups = _build(static, dynamic, model, scale, huber_k)
         values = optimize(graph, values)
 

@@ -210,17 +210,19 @@ def pair_problem(recording: Recording, imu0: str, imu1: str, lowpass_hz: float |
             continue
         a0, a1 = d0.accel_m_s2[start:end], d1.accel_m_s2[sel1]
         sigma = np.sqrt(a0.var(axis=0) / len(a0) + a1.var(axis=0) / len(a1))
-        static.append(gp.StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma))
+        static.append(gp.StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma, len(a0), len(a1)))
     inside = (t0 > t1[0] + 0.5) & (t0 < t1[-1] - 0.5)  # room for any clock offset up to 0.5 s
     rate = d0.rate_hz
     # Zero-phase low-pass on both IMUs: the relation w0 = R w1(t - dt) is linear and time-invariant, so it
     # survives identical filtering, while vibration that differs between mounting points does not pass.
     g0, a0 = lowpass(d0.gyro_rad_s, rate, lowpass_hz), lowpass(d0.accel_m_s2, rate, lowpass_hz)
     g1, a1 = lowpass(d1.gyro_rad_s, d1.rate_hz, lowpass_hz), lowpass(d1.accel_m_s2, d1.rate_hz, lowpass_hz)
-    step = max(1, int(rate / (2.5 * lowpass_hz))) if lowpass_hz else 1  # keep ~independent filtered samples
-    idx = np.flatnonzero(moving & inside)[::step]
-    if len(idx) <= 50:
+    # Nyquist spacing of the filtered band keeps the kept samples ~uncorrelated, so per-sample sigmas hold
+    step = max(1, round(rate / (2 * lowpass_hz))) if lowpass_hz else 1
+    idx = np.flatnonzero(moving & inside)
+    if len(idx) < max(50, 10 * step):  # under half a second of motion: nothing to learn from it
         return PairProblem(static, None, 0.0)
+    idx = idx[::step]
     w_dot = savgol_filter(g0, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
     dynamic = gp.DynamicData(
         t0[idx], g0[idx], a0[idx], w_dot[idx], Signal(t1, g1), Signal(t1, a1),
