@@ -133,3 +133,47 @@ def _values(variables):
     for key, value in variables.items():
         values.insert(key, value)
     return values
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_partial_blocks_and_channel_slopes(seed):
+    """Subsets of M (scale only / misalignment only) and auxiliary-channel bias slopes: exact zero, Jacobians."""
+    rng = np.random.default_rng(seed)
+    acc, gyr = random_accel(rng), random_gyro(rng)
+    slope_a, slope_g = 0.01 * rng.normal(size=3), 1e-3 * rng.normal(size=3)
+    up = random_unit(rng)
+    dev = float(rng.normal() * 5)
+    a_raw = acc.raw_from_specific_force(G * up[None])[0] + slope_a * dev
+    nominal = imu.AccelIntrinsics(M=acc.M.copy())
+    free = (0, 3, 5)  # the diagonal: scale only, misalignment held at its nominal value
+    keys = fimu.AccelKeys(bias=2, M=3, M_free=free, channels=(("temperature", 4),))
+    factor = fimu.static_accel_factor(unit_noise(3), a_raw, G, 1, keys, nominal, {"temperature": dev})
+    truth = {1: gtsam.Unit3(up), 2: acc.bias, 3: imu.upper_triangular_entries(acc.M)[list(free)], 4: slope_a}
+    assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-12
+    assert_factor_jacobians(factor, {1: gtsam.Unit3(random_unit(rng)), 2: rng.normal(size=3),
+                                     3: 1 + 0.1 * rng.normal(size=3), 4: rng.normal(size=3)})
+
+    w_raw = gyr.raw_from_rate(np.zeros((1, 3)), G * up[None])[0] + slope_g * dev
+    gkeys = fimu.GyroKeys(bias=2, A=3, channels=(("supply", 4),))
+    factor = fimu.static_gyro_factor(unit_noise(3), w_raw, G, 1, gkeys, imu.GyroIntrinsics(), {"supply": dev})
+    assert np.max(np.abs(factor.unwhitenedError(_values({1: gtsam.Unit3(up), 2: gyr.bias, 3: gyr.A.ravel(),
+                                                         4: slope_g})))) < 1e-12
+    assert_factor_jacobians(factor, {1: gtsam.Unit3(random_unit(rng)), 2: rng.normal(size=3),
+                                     3: 0.01 * rng.normal(size=9), 4: rng.normal(size=3)})
+
+    w_S, dt = _motion(rng)
+    f_S = G * np.tile(random_unit(rng), (len(w_S), 1))
+    devs = np.linspace(-1, 1, len(w_S)) * 3
+    w_raw = gyr.raw_from_rate(w_S, f_S) + np.outer(devs, slope_g)
+    off_diagonal = (1, 2, 3, 5, 6, 7)
+    mkeys = fimu.GyroKeys(bias=3, M=4, M_free=off_diagonal, channels=(("supply", 5),))
+    nominal_g = imu.GyroIntrinsics(M=gyr.M.copy(), A=gyr.A.copy())
+    factor = fimu.gyro_motion_factor(unit_noise(3), w_raw, f_S, dt, 1, 2, mkeys, nominal_g, {"supply": devs})
+    u_start = random_unit(rng)
+    u_end = so3.integrate_rates(w_S, dt).T @ u_start
+    truth = {1: gtsam.Unit3(u_start), 2: gtsam.Unit3(u_end), 3: gyr.bias, 4: gyr.M.ravel()[list(off_diagonal)],
+             5: slope_g}
+    assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-10
+    assert_factor_jacobians(factor, {1: gtsam.Unit3(random_unit(rng)), 2: gtsam.Unit3(random_unit(rng)),
+                                     3: 0.01 * rng.normal(size=3), 4: 0.02 * rng.normal(size=6),
+                                     5: 1e-3 * rng.normal(size=3)}, atol=1e-5)

@@ -20,113 +20,147 @@ import numpy as np
 from selfcal.models import imu, so3
 
 
+ALL_ACCEL_M = tuple(range(6))
+ALL_GYRO_M = tuple(range(9))
+
+
 @dataclass(frozen=True)
 class AccelKeys:
-    """Keys of the estimated accelerometer blocks; ``None`` means held at the nominal value."""
+    """Keys of the estimated accelerometer blocks; ``None`` means held at the nominal value.
+
+    ``M_free`` selects which of the 6 upper-triangular entries the ``M`` variable holds (diagonal = scale,
+    off-diagonal = misalignment); ``channels`` are ``(channel name, key of a 3-vector slope)``: the bias is
+    ``b + slope * (channel - channel reference)``.
+    """
 
     bias: int | None = None
-    M: int | None = None  # 6 upper-triangular entries
+    M: int | None = None
+    M_free: tuple[int, ...] = ALL_ACCEL_M
+    channels: tuple[tuple[str, int], ...] = ()
 
 
 @dataclass(frozen=True)
 class GyroKeys:
+    """As :class:`AccelKeys`; ``M_free`` indexes the 9 row-major entries of the full gyro M; ``A`` is 9 entries."""
+
     bias: int | None = None
-    M: int | None = None  # 9 entries, row-major
-    A: int | None = None  # g-sensitivity, 9 entries, row-major
+    M: int | None = None
+    M_free: tuple[int, ...] = ALL_GYRO_M
+    A: int | None = None
+    channels: tuple[tuple[str, int], ...] = ()
 
 
 def accel_from_values(values, keys: AccelKeys, nominal: imu.AccelIntrinsics) -> imu.AccelIntrinsics:
-    return imu.AccelIntrinsics(
-        M=imu.upper_triangular(values.atVector(keys.M)) if keys.M is not None else nominal.M,
-        bias=values.atVector(keys.bias) if keys.bias is not None else nominal.bias)
+    m6 = imu.upper_triangular_entries(nominal.M)
+    if keys.M is not None:
+        m6[list(keys.M_free)] = values.atVector(keys.M)
+    return imu.AccelIntrinsics(M=imu.upper_triangular(m6),
+                               bias=values.atVector(keys.bias) if keys.bias is not None else nominal.bias)
 
 
 def gyro_from_values(values, keys: GyroKeys, nominal: imu.GyroIntrinsics) -> imu.GyroIntrinsics:
+    m9 = nominal.M.ravel().copy()
+    if keys.M is not None:
+        m9[list(keys.M_free)] = values.atVector(keys.M)
     return imu.GyroIntrinsics(
-        M=values.atVector(keys.M).reshape(3, 3) if keys.M is not None else nominal.M,
-        bias=values.atVector(keys.bias) if keys.bias is not None else nominal.bias,
+        M=m9.reshape(3, 3), bias=values.atVector(keys.bias) if keys.bias is not None else nominal.bias,
         A=values.atVector(keys.A).reshape(3, 3) if keys.A is not None else nominal.A)
 
 
-def _present(*pairs):
-    """Keys and Jacobian blocks of the estimated blocks only, in a fixed order."""
-    return [(k, J) for k, J in pairs if k is not None]
+def free_entries(M: np.ndarray, keys) -> np.ndarray:
+    """Initial value of the ``M`` variable: the free entries of ``M``."""
+    entries = imu.upper_triangular_entries(M) if isinstance(keys, AccelKeys) else M.ravel()
+    return entries[list(keys.M_free)].copy()
 
 
-def static_accel_factor(noise, a_raw_mean, gravity_m_s2, up_key, keys: AccelKeys,
-                        nominal: imu.AccelIntrinsics) -> gtsam.CustomFactor:
-    """Static pose: ``e = M_a (a_raw_mean - b_a) - g u``  (m s^-2, sensor frame)."""
+def _channel_bias(values, channels, deviations) -> np.ndarray:
+    """sum over channels of slope * deviation; deviations: name -> scalar or (n,) array."""
+    return sum((np.multiply.outer(deviations[name], values.atVector(key)) for name, key in channels), 0.0)
+
+
+def _fill(H, blocks):
+    for n, J in enumerate(J for k, J in blocks if k is not None):
+        H[n] = J
+
+
+def static_accel_factor(noise, a_raw_mean, gravity_m_s2, up_key, keys: AccelKeys, nominal: imu.AccelIntrinsics,
+                        channel_deviation: dict | None = None) -> gtsam.CustomFactor:
+    """Static pose: ``e = M_a (a_raw_mean - b_a - sum_c k_c dc) - g u``  (m s^-2, sensor frame).
+
+    ``channel_deviation``: the mean deviation of each auxiliary channel from its reference over this pose.
+    """
     a = np.asarray(a_raw_mean, dtype=float)
-    ordered = [up_key] + [k for k in (keys.bias, keys.M) if k is not None]
+    dev = channel_deviation or {}
+    ordered = [up_key] + [k for k in (keys.bias, keys.M) if k is not None] + [k for _, k in keys.channels]
 
     def error(this, values, H):
         cal = accel_from_values(values, keys, nominal)
         up = values.atUnit3(up_key)
-        d = a - cal.bias
+        d = a - cal.bias - _channel_bias(values, keys.channels, dev)
         e = cal.M @ d - gravity_m_s2 * up.point3()
         if H is not None:
             dM = np.zeros((3, 6))
             for col, (i, j) in enumerate(imu.UPPER_TRIANGULAR_INDEX):
                 dM[i, col] = d[j]
-            blocks = [(up_key, -gravity_m_s2 * up.basis())] + _present((keys.bias, -cal.M), (keys.M, dM))
-            for n, (_, J) in enumerate(blocks):
-                H[n] = J
+            _fill(H, [(up_key, -gravity_m_s2 * up.basis()), (keys.bias, -cal.M), (keys.M, dM[:, list(keys.M_free)])]
+                  + [(k, -cal.M * dev[name]) for name, k in keys.channels])
         return e
 
     return gtsam.CustomFactor(noise, ordered, error)
 
 
-def static_gyro_factor(noise, w_raw_mean, gravity_m_s2, up_key, keys: GyroKeys,
-                       nominal: imu.GyroIntrinsics) -> gtsam.CustomFactor:
-    """Static pose, zero rotation: ``e = w_raw_mean - b_g - A g u``  (rad s^-1, raw frame).
+def static_gyro_factor(noise, w_raw_mean, gravity_m_s2, up_key, keys: GyroKeys, nominal: imu.GyroIntrinsics,
+                       channel_deviation: dict | None = None) -> gtsam.CustomFactor:
+    """Static pose, zero rotation: ``e = w_raw_mean - b_g - sum_c k_c dc - A g u``  (rad s^-1, raw frame).
 
     Earth rotation (7.3e-5 rad/s) is not modelled: it is below the bias stability of the MEMS gyros this
     targets; for a navigation-grade gyro it would appear in the audit as an orientation-dependent bias.
     """
     w = np.asarray(w_raw_mean, dtype=float)
-    ordered = [up_key] + [k for k in (keys.bias, keys.A) if k is not None]
+    dev = channel_deviation or {}
+    ordered = [up_key] + [k for k in (keys.bias, keys.A) if k is not None] + [k for _, k in keys.channels]
 
     def error(this, values, H):
         cal = gyro_from_values(values, keys, nominal)
         up = values.atUnit3(up_key)
         f = gravity_m_s2 * up.point3()
-        e = w - cal.bias - cal.A @ f
+        e = w - cal.bias - _channel_bias(values, keys.channels, dev) - cal.A @ f
         if H is not None:
-            dA = -np.kron(np.eye(3), f[None, :])
-            blocks = [(up_key, -gravity_m_s2 * cal.A @ up.basis())] + _present(
-                (keys.bias, -np.eye(3)), (keys.A, dA))
-            for n, (_, J) in enumerate(blocks):
-                H[n] = J
+            _fill(H, [(up_key, -gravity_m_s2 * cal.A @ up.basis()), (keys.bias, -np.eye(3)),
+                      (keys.A, -np.kron(np.eye(3), f[None, :]))]
+                  + [(k, -np.eye(3) * dev[name]) for name, k in keys.channels])
         return e
 
     return gtsam.CustomFactor(noise, ordered, error)
 
 
 def gyro_motion_factor(noise, w_raw, f_S, dt_s, up_key_start, up_key_end, keys: GyroKeys,
-                       nominal: imu.GyroIntrinsics) -> gtsam.CustomFactor:
+                       nominal: imu.GyroIntrinsics, channel_deviation: dict | None = None) -> gtsam.CustomFactor:
     """Move between two static poses: the integrated gyro must carry the start up-direction onto the end one.
 
     ``e = u_end - delta_R^T u_start`` with ``delta_R`` = body(start) <- body(end) integrated from the
     calibrated rates (dimensionless chord between unit vectors, ~ rad for small errors).
-    ``f_S`` is the specific force during the move (from the accelerometer), used only by the A f term.
+    ``f_S`` is the specific force during the move (from the accelerometer), used only by the A f term;
+    ``channel_deviation`` maps channel names to per-sample deviations (n,).
     """
     w_raw, f_S, dt_s = (np.asarray(x, dtype=float) for x in (w_raw, f_S, dt_s))
-    ordered = [up_key_start, up_key_end] + [k for k in (keys.bias, keys.M, keys.A) if k is not None]
+    dev = channel_deviation or {}
+    ordered = ([up_key_start, up_key_end] + [k for k in (keys.bias, keys.M, keys.A) if k is not None]
+               + [k for _, k in keys.channels])
 
     def error(this, values, H):
         cal = gyro_from_values(values, keys, nominal)
         u0, u1 = values.atUnit3(up_key_start), values.atUnit3(up_key_end)
-        if H is None:
-            delta_R = so3.integrate_rates(imu.gyro_rates_and_jacobians(w_raw, f_S, cal)[0], dt_s)
-            return u1.point3() - delta_R.T @ u0.point3()
-        delta_R, (J_bias, J_M, J_A) = imu.relative_rotation_and_jacobians(w_raw, f_S, dt_s, cal)
+        channels = {name: (values.atVector(k), dev[name]) for name, k in keys.channels}
+        delta_R, J = imu.relative_rotation_and_jacobians(w_raw, f_S, dt_s, cal, channels)
         v = delta_R.T @ u0.point3()
-        # delta_R Exp(J d): v -> Exp(-J d) v = v + [v]x J d, so de/dd = -[v]x J
-        minus_v_hat = -so3.hat(v)
-        blocks = [(up_key_start, -delta_R.T @ u0.basis()), (up_key_end, u1.basis())] + _present(
-            (keys.bias, minus_v_hat @ J_bias), (keys.M, minus_v_hat @ J_M), (keys.A, minus_v_hat @ J_A))
-        for n, (_, J) in enumerate(blocks):
-            H[n] = J
+        if H is not None:
+            # delta_R Exp(J d): v -> Exp(-J d) v = v + [v]x J d, so de/dd = -[v]x J
+            minus_v_hat = -so3.hat(v)
+            _fill(H, [(up_key_start, -delta_R.T @ u0.basis()), (up_key_end, u1.basis()),
+                      (keys.bias, minus_v_hat @ J["bias"]), (keys.M, minus_v_hat @ J["M"][:, list(keys.M_free)]),
+                      (keys.A, minus_v_hat @ J["A"])]
+                  + [(k, minus_v_hat @ J[name]) for name, k in keys.channels])
         return u1.point3() - v
 
     return gtsam.CustomFactor(noise, ordered, error)
@@ -194,12 +228,10 @@ def dynamic_pair_factor(noise, t0_s, v0, signal1: Signal, rotation_key, time_off
         if lever_arm_key is not None:
             e = e + np.einsum("nij,j->ni", L, values.atVector(lever_arm_key))
         if H is not None:
-            blocks = [(rotation_key, (R @ so3.hat(v1)).reshape(-1, 3))]
-            blocks += _present((time_offset_key, (slope1 @ R.T).reshape(-1, 1)),
-                               (offset_key, np.tile(-np.eye(3), (len(v0), 1))),
-                               (lever_arm_key, L.reshape(-1, 3) if L is not None else None))
-            for n, (_, J) in enumerate(blocks):
-                H[n] = J
+            _fill(H, [(rotation_key, (R @ so3.hat(v1)).reshape(-1, 3)),
+                      (time_offset_key, (slope1 @ R.T).reshape(-1, 1)),
+                      (offset_key, np.tile(-np.eye(3), (len(v0), 1))),
+                      (lever_arm_key, L.reshape(-1, 3) if L is not None else None)])
         return e.reshape(-1)
 
     return gtsam.CustomFactor(noise, ordered, error)

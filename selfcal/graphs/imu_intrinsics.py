@@ -115,7 +115,7 @@ def solve_intrinsics(poses: list[StaticPose], moves: list[Move], gravity_m_s2: f
     values = gtsam.Values()
     values.insert(ACCEL_BIAS, nominal_accel.bias.copy())
     if model.accel_M:
-        values.insert(ACCEL_M, imu.upper_triangular_entries(nominal_accel.M))
+        values.insert(ACCEL_M, fimu.free_entries(nominal_accel.M, accel_keys))
     for k, pose in enumerate(poses):
         f0 = nominal_accel.specific_force(pose.accel_mean[None])[0]
         values.insert(U(k), gtsam.Unit3(f0 / np.linalg.norm(f0)))
@@ -128,7 +128,7 @@ def solve_intrinsics(poses: list[StaticPose], moves: list[Move], gravity_m_s2: f
                               A=GYRO_A if model.gyro_A else None)
     values.insert(GYRO_BIAS, np.mean([p.gyro_mean for p in poses], axis=0))
     if gyro_keys.M is not None:
-        values.insert(GYRO_M, nominal_gyro.M.ravel().copy())
+        values.insert(GYRO_M, fimu.free_entries(nominal_gyro.M, gyro_keys))
     if gyro_keys.A is not None:
         values.insert(GYRO_A, nominal_gyro.A.ravel().copy())
     for k, pose in enumerate(poses):

@@ -131,12 +131,15 @@ def lever_arm_jacobian(w_S0, w_dot_S0) -> np.ndarray:
     return so3.hat(w_dot_S0) + W @ W
 
 
-def gyro_rates_and_jacobians(w_raw, f_S, gyro: GyroIntrinsics):
+def gyro_rates_and_jacobians(w_raw, f_S, gyro: GyroIntrinsics, bias_offset=None):
     """Calibrated rates (N, 3) and their derivatives w.r.t. bias (3), M (9 row-major) and A (9 row-major).
 
-    ``w = M u``, ``u = w_raw - b - A f``:  dw/db = -M, dw/dM_jk = e_j u_k, dw/dA_jk = -M e_j f_k.
+    ``w = M u``, ``u = w_raw - b - db - A f``:  dw/db = -M, dw/dM_jk = e_j u_k, dw/dA_jk = -M e_j f_k.
+    ``bias_offset`` (N, 3) is an extra, per-sample bias (e.g. slope x channel deviation).
     """
     u = np.asarray(w_raw) - gyro.bias - np.asarray(f_S) @ gyro.A.T
+    if bias_offset is not None:
+        u = u - bias_offset
     w = u @ gyro.M.T
     n = len(u)
     d_bias = np.broadcast_to(-gyro.M, (n, 3, 3))
@@ -145,16 +148,23 @@ def gyro_rates_and_jacobians(w_raw, f_S, gyro: GyroIntrinsics):
     return w, d_bias, d_M, d_A
 
 
-def relative_rotation_and_jacobians(w_raw, f_S, dt_s, gyro: GyroIntrinsics):
+def relative_rotation_and_jacobians(w_raw, f_S, dt_s, gyro: GyroIntrinsics, channels=None):
     """Rotation body(start) <- body(end) integrated from raw gyro samples, with right-Jacobians.
 
-    Returns ``delta_R`` and ``(J_bias (3,3), J_M (3,9), J_A (3,9))`` with
-    ``delta_R(theta + d) = delta_R Exp(J d)`` for each block of the gyro intrinsics.
+    ``channels`` maps a name to ``(slope (3,), deviation (N,))``: the gyro bias is ``b + slope * deviation``
+    sample by sample.  Returns ``delta_R`` and a dict of Jacobians ``J`` (3 x block size) for the blocks
+    ``bias``, ``M``, ``A`` and each channel name, with ``delta_R(theta + d) = delta_R Exp(J d)``.
     """
-    w, d_bias, d_M, d_A = gyro_rates_and_jacobians(w_raw, f_S, gyro)
+    channels = channels or {}
+    offset = sum((np.outer(dev, slope) for slope, dev in channels.values()), np.zeros((len(w_raw), 3)))
+    w, d_bias, d_M, d_A = gyro_rates_and_jacobians(w_raw, f_S, gyro, offset)
     delta_R, J = so3.integrate_rates(w, dt_s, with_jacobians=True)
-    return delta_R, (np.einsum("nij,njk->ik", J, d_bias), np.einsum("nij,njk->ik", J, d_M),
-                     np.einsum("nij,njk->ik", J, d_A))
+    out = {"bias": np.einsum("nij,njk->ik", J, d_bias), "M": np.einsum("nij,njk->ik", J, d_M),
+           "A": np.einsum("nij,njk->ik", J, d_A)}
+    J_bias_per_sample = J @ (-gyro.M)  # d(delta_R)/d(bias at sample i)
+    for name, (_, dev) in channels.items():
+        out[name] = np.einsum("nij,n->ij", J_bias_per_sample, dev)
+    return delta_R, out
 
 
 def white_noise_sigma_of_mean(noise_density: float, rate_hz: float, n_samples: int) -> float:
