@@ -21,21 +21,27 @@ import numpy as np
 
 from selfcal.factors import imu as fimu
 from selfcal.graphs.solve import DegenerateDataError, marginal_covariances, optimize, robust
+from selfcal.io.recording import ImuData
 from selfcal.models import imu, so3
+from selfcal.models.static_intervals import detect_static_intervals, require_static_poses, static_poses
 
 U = gtsam.symbol_shorthand.U  # up-direction of static pose k
 ACCEL_BIAS, ACCEL_M = gtsam.symbol("a", 0), gtsam.symbol("a", 1)
 GYRO_BIAS, GYRO_M, GYRO_A = gtsam.symbol("g", 0), gtsam.symbol("g", 1), gtsam.symbol("g", 2)
+ACCEL_DIAGONAL, ACCEL_OFF_DIAGONAL = (0, 3, 5), (1, 2, 4)  # in the 6 upper-triangular entries
+GYRO_DIAGONAL, GYRO_OFF_DIAGONAL = (0, 4, 8), (1, 2, 3, 5, 6, 7)  # in the 9 row-major entries
 
 
 @dataclass
 class StaticPose:
-    """Mean raw outputs of one static interval and the 1-sigma of those means (per axis)."""
+    """Mean raw outputs of one static interval, the 1-sigma of those means (per axis), time and channels."""
 
     accel_mean: np.ndarray
     gyro_mean: np.ndarray
     accel_sigma: np.ndarray
     gyro_sigma: np.ndarray
+    time_s: float = 0.0
+    channels: dict = field(default_factory=dict)  # channel name -> mean over the pose
 
 
 @dataclass
@@ -46,15 +52,40 @@ class Move:
     accel_raw: np.ndarray  # (n, 3) m/s^2
     dt_s: np.ndarray  # (n,) hold time of each sample
     angle_sigma_rad: float  # 1-sigma of the integrated angle from gyro white noise
+    time_s: np.ndarray | None = None  # (n,)
+    channels: dict = field(default_factory=dict)  # channel name -> (n,) samples
+
+
+@dataclass
+class IntrinsicsProblem:
+    """Everything the graph needs from one IMU recording."""
+
+    poses: list[StaticPose]
+    moves: list[Move]  # moves[k] joins poses[k] and poses[k + 1]
+    gravity_m_s2: float
+    channel_units: dict = field(default_factory=dict)
+    channel_refs: dict = field(default_factory=dict)  # reference value of each channel (mean over poses)
+
+    def pose_deviation(self, k: int) -> dict:
+        return {name: self.poses[k].channels[name] - ref for name, ref in self.channel_refs.items()}
+
+    def move_deviation(self, k: int) -> dict:
+        return {name: self.moves[k].channels[name] - ref for name, ref in self.channel_refs.items()}
 
 
 @dataclass(frozen=True)
-class IntrinsicsModel:
-    """Which blocks are estimated (biases always are)."""
+class IntrinsicsSpec:
+    """Which blocks are estimated beyond the biases (which always are)."""
 
-    accel_M: bool = True
-    gyro_M: bool = True
+    accel_M_free: tuple[int, ...] = fimu.ALL_ACCEL_M
+    gyro_M_free: tuple[int, ...] = fimu.ALL_GYRO_M
     gyro_A: bool = True
+    accel_channels: tuple[str, ...] = ()  # accelerometer bias linear in these channels
+    gyro_channels: tuple[str, ...] = ()
+
+    @classmethod
+    def bias_only(cls) -> "IntrinsicsSpec":
+        return cls((), (), False)
 
 
 @dataclass
@@ -65,7 +96,7 @@ class IntrinsicsEstimate:
     up_S: np.ndarray  # (K, 3) estimated up-directions of the static poses
     accel_norm_residual_m_s2: np.ndarray  # (K,) |f_k| - g
     gyro_direction_residual_rad: np.ndarray  # (K-1,) angle between integrated and measured up-directions
-    model: IntrinsicsModel = field(default_factory=IntrinsicsModel)
+    spec: IntrinsicsSpec = field(default_factory=IntrinsicsSpec)
 
     def sigma(self, block: str) -> np.ndarray:
         return np.sqrt(np.diag(self.covariance[block]))
@@ -74,10 +105,41 @@ class IntrinsicsEstimate:
 MIN_POSES_FULL_ACCEL = 9  # bias (3) + upper-triangular M (6); each pose adds one net equation (|f| = g)
 
 
-def check_pose_geometry(poses: list[StaticPose], model: IntrinsicsModel) -> None:
+def problem_from_imu(data: ImuData, gravity_m_s2: float, **detector_options) -> IntrinsicsProblem:
+    """Static poses (sigmas of their means, channel means) and the moves between them, from a recording.
+
+    Raises TooFewStaticPosesError when the recording holds too few distinct static orientations.
+    """
+    t_s = data.t_s
+    intervals = detect_static_intervals(t_s, data.accel_m_s2, **detector_options)
+    stats = static_poses(t_s, data.accel_m_s2, data.gyro_rad_s, intervals)
+    require_static_poses(stats, MIN_POSES_FULL_ACCEL)
+    # pooled median: robust to one slightly moving pose; a tiny floor keeps noise-free (simulated exact) data
+    # a regular system
+    accel_std = np.maximum(np.median([p.accel_std for p in stats], axis=0), 1e-9)
+    gyro_std = np.maximum(np.median([p.gyro_std for p in stats], axis=0), 1e-9)
+    channels = {name: np.asarray(v, dtype=float) for name, v in data.channels.items()}
+    poses = [StaticPose(p.accel_mean, p.gyro_mean, accel_std / np.sqrt(p.n_samples), gyro_std / np.sqrt(p.n_samples),
+                        float(np.mean(t_s[p.start:p.end])),
+                        {name: float(np.mean(v[p.start:p.end])) for name, v in channels.items()}) for p in stats]
+    dt_all = np.diff(t_s, append=t_s[-1] + np.median(np.diff(t_s)))
+    moves = []
+    for (_, end), (start, _) in zip(intervals[:-1], intervals[1:]):
+        # the last static sample is held until the first moving one: include it, so the whole move integrates
+        idx = np.arange(end - 1, start)
+        dt = dt_all[idx]
+        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt,
+                          float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2))), t_s[idx],
+                          {name: v[idx] for name, v in channels.items()}))
+    refs = {name: float(np.mean([p.channels[name] for p in poses])) for name in channels}
+    return IntrinsicsProblem(poses, moves, gravity_m_s2, dict(data.channel_units), refs)
+
+
+def check_pose_geometry(poses: list[StaticPose], spec: IntrinsicsSpec) -> None:
     """Refuse geometry that cannot determine the accelerometer model, saying what poses to add."""
     up = np.array([p.accel_mean / np.linalg.norm(p.accel_mean) for p in poses])
-    needed = MIN_POSES_FULL_ACCEL if model.accel_M else 3
+    full = len(spec.accel_M_free) > 0
+    needed = MIN_POSES_FULL_ACCEL if full else 3
     if len(poses) < needed:
         raise DegenerateDataError(
             f"{len(poses)} static poses, at least {needed} needed: hold the IMU still for a few seconds in more "
@@ -89,70 +151,116 @@ def check_pose_geometry(poses: list[StaticPose], model: IntrinsicsModel) -> None
     if singular[2] < 0.1:
         raise DegenerateDataError(
             "the static gravity directions lie in one plane: add poses with the remaining axis up and down")
-    if model.accel_M and np.linalg.svd(up - up.mean(axis=0), compute_uv=False)[2] / np.sqrt(len(up)) < 0.05:
+    if full and np.linalg.svd(up - up.mean(axis=0), compute_uv=False)[2] / np.sqrt(len(up)) < 0.05:
         # directions on one cone (e.g. turning only about one axis): bias and scale trade off along the cone axis
         raise DegenerateDataError(
             "the static gravity directions lie on one cone (rotation about a single axis): add poses turned "
             "about another axis")
 
 
+def channel_key(quantity: str, index: int) -> int:
+    return gtsam.symbol("c" if quantity == "accel" else "d", index)
+
+
+@dataclass
+class IntrinsicsGraph:
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    accel_keys: fimu.AccelKeys
+    gyro_keys: fimu.GyroKeys
+    nominal_accel: imu.AccelIntrinsics
+    nominal_gyro: imu.GyroIntrinsics
+    pose_indices: list[int]
+
+    def accel(self, values=None) -> imu.AccelIntrinsics:
+        return fimu.accel_from_values(values or self.values, self.accel_keys, self.nominal_accel)
+
+    def gyro(self, values=None) -> imu.GyroIntrinsics:
+        return fimu.gyro_from_values(values or self.values, self.gyro_keys, self.nominal_gyro)
+
+    def channel_slopes(self, values=None) -> dict[str, dict[str, np.ndarray]]:
+        values = values or self.values
+        return {"accel": {n: values.atVector(k) for n, k in self.accel_keys.channels},
+                "gyro": {n: values.atVector(k) for n, k in self.gyro_keys.channels}}
+
+
+def build_graph(problem: IntrinsicsProblem, spec: IntrinsicsSpec, huber_k: float | None = 3.0,
+                pose_indices=None, nominal_accel: imu.AccelIntrinsics | None = None,
+                nominal_gyro: imu.GyroIntrinsics | None = None) -> IntrinsicsGraph:
+    """The intrinsics graph over a subset of poses (default all) and the moves between consecutive ones in it,
+    with initial values from an accelerometer-only solve (which also gives the specific force in the moves)."""
+    poses = list(range(len(problem.poses))) if pose_indices is None else list(pose_indices)
+    nominal_accel = nominal_accel or imu.AccelIntrinsics()
+    nominal_gyro = nominal_gyro or imu.GyroIntrinsics()
+    g = problem.gravity_m_s2
+    accel_keys = fimu.AccelKeys(bias=ACCEL_BIAS, M=ACCEL_M if spec.accel_M_free else None,
+                                M_free=spec.accel_M_free,
+                                channels=tuple((n, channel_key("accel", i)) for i, n in enumerate(spec.accel_channels)))
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    values.insert(ACCEL_BIAS, nominal_accel.bias.copy())
+    if accel_keys.M is not None:
+        values.insert(ACCEL_M, fimu.free_entries(nominal_accel.M, accel_keys))
+    for _, key in accel_keys.channels:
+        values.insert(key, np.zeros(3))
+    for k in poses:
+        pose = problem.poses[k]
+        f0 = nominal_accel.specific_force(pose.accel_mean[None])[0]
+        values.insert(U(k), gtsam.Unit3(f0 / np.linalg.norm(f0)))
+        graph.add(fimu.static_accel_factor(robust(pose.accel_sigma, huber_k), pose.accel_mean, g, U(k), accel_keys,
+                                           nominal_accel, problem.pose_deviation(k)))
+    values = optimize(graph, values)
+    accel_stage1 = fimu.accel_from_values(values, accel_keys, nominal_accel)
+
+    moves = [k for k in poses[:-1] if k + 1 in poses and k < len(problem.moves)]
+    gyro_keys = fimu.GyroKeys(bias=GYRO_BIAS, M=GYRO_M if spec.gyro_M_free and moves else None,
+                              M_free=spec.gyro_M_free, A=GYRO_A if spec.gyro_A else None,
+                              channels=tuple((n, channel_key("gyro", i)) for i, n in enumerate(spec.gyro_channels)))
+    values.insert(GYRO_BIAS, np.mean([problem.poses[k].gyro_mean for k in poses], axis=0))
+    if gyro_keys.M is not None:
+        values.insert(GYRO_M, fimu.free_entries(nominal_gyro.M, gyro_keys))
+    if gyro_keys.A is not None:
+        values.insert(GYRO_A, nominal_gyro.A.ravel().copy())
+    for _, key in gyro_keys.channels:
+        values.insert(key, np.zeros(3))
+    for k in poses:
+        pose = problem.poses[k]
+        graph.add(fimu.static_gyro_factor(robust(pose.gyro_sigma, huber_k), pose.gyro_mean, g, U(k), gyro_keys,
+                                          nominal_gyro, problem.pose_deviation(k)))
+    for k in moves:
+        move = problem.moves[k]
+        graph.add(fimu.gyro_motion_factor(robust(np.full(3, move.angle_sigma_rad), huber_k), move.gyro_raw,
+                                          accel_stage1.specific_force(move.accel_raw), move.dt_s, U(k), U(k + 1),
+                                          gyro_keys, nominal_gyro, problem.move_deviation(k)))
+    return IntrinsicsGraph(graph, values, accel_keys, gyro_keys, nominal_accel, nominal_gyro, poses)
+
+
 def solve_intrinsics(poses: list[StaticPose], moves: list[Move], gravity_m_s2: float,
-                     model: IntrinsicsModel = IntrinsicsModel(), huber_k: float | None = 3.0,
+                     spec: IntrinsicsSpec = IntrinsicsSpec(), huber_k: float | None = 3.0,
                      nominal_accel: imu.AccelIntrinsics | None = None,
                      nominal_gyro: imu.GyroIntrinsics | None = None) -> IntrinsicsEstimate:
     """Estimate accelerometer and gyro intrinsics from static poses and the moves between them.
 
     ``moves[k]`` joins ``poses[k]`` and ``poses[k + 1]``; pass ``moves=[]`` for accelerometer only.
     """
-    check_pose_geometry(poses, model)
+    check_pose_geometry(poses, spec)
     if moves and len(moves) != len(poses) - 1:
         raise ValueError(f"{len(moves)} moves for {len(poses)} poses: need one move between consecutive poses")
-    nominal_accel = nominal_accel or imu.AccelIntrinsics()
-    nominal_gyro = nominal_gyro or imu.GyroIntrinsics()
-    accel_keys = fimu.AccelKeys(bias=ACCEL_BIAS, M=ACCEL_M if model.accel_M else None)
-
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    values.insert(ACCEL_BIAS, nominal_accel.bias.copy())
-    if model.accel_M:
-        values.insert(ACCEL_M, fimu.free_entries(nominal_accel.M, accel_keys))
-    for k, pose in enumerate(poses):
-        f0 = nominal_accel.specific_force(pose.accel_mean[None])[0]
-        values.insert(U(k), gtsam.Unit3(f0 / np.linalg.norm(f0)))
-        graph.add(fimu.static_accel_factor(robust(pose.accel_sigma, huber_k), pose.accel_mean, gravity_m_s2,
-                                           U(k), accel_keys, nominal_accel))
-    values = optimize(graph, values)
-    accel_stage1 = fimu.accel_from_values(values, accel_keys, nominal_accel)
-
-    gyro_keys = fimu.GyroKeys(bias=GYRO_BIAS, M=GYRO_M if model.gyro_M and moves else None,
-                              A=GYRO_A if model.gyro_A else None)
-    values.insert(GYRO_BIAS, np.mean([p.gyro_mean for p in poses], axis=0))
-    if gyro_keys.M is not None:
-        values.insert(GYRO_M, fimu.free_entries(nominal_gyro.M, gyro_keys))
-    if gyro_keys.A is not None:
-        values.insert(GYRO_A, nominal_gyro.A.ravel().copy())
-    for k, pose in enumerate(poses):
-        graph.add(fimu.static_gyro_factor(robust(pose.gyro_sigma, huber_k), pose.gyro_mean, gravity_m_s2, U(k),
-                                          gyro_keys, nominal_gyro))
-    for k, move in enumerate(moves):
-        f_S = accel_stage1.specific_force(move.accel_raw)
-        graph.add(fimu.gyro_motion_factor(robust(np.full(3, move.angle_sigma_rad), huber_k), move.gyro_raw, f_S,
-                                          move.dt_s, U(k), U(k + 1), gyro_keys, nominal_gyro))
-    values = optimize(graph, values)
-
+    problem = IntrinsicsProblem(poses, moves, gravity_m_s2,
+                                channel_refs={n: float(np.mean([p.channels[n] for p in poses]))
+                                              for n in set(spec.accel_channels) | set(spec.gyro_channels)})
+    built = build_graph(problem, spec, huber_k, None, nominal_accel, nominal_gyro)
+    values = optimize(built.graph, built.values)
     blocks = {"accel_bias": ACCEL_BIAS, "gyro_bias": GYRO_BIAS}
-    if model.accel_M:
-        blocks["accel_M"] = ACCEL_M
-    if gyro_keys.M is not None:
-        blocks["gyro_M"] = GYRO_M
-    if gyro_keys.A is not None:
-        blocks["gyro_A"] = GYRO_A
-    cov = marginal_covariances(graph, values, blocks.values(), "the IMU intrinsics")
+    for name, key, present in (("accel_M", ACCEL_M, built.accel_keys.M), ("gyro_M", GYRO_M, built.gyro_keys.M),
+                               ("gyro_A", GYRO_A, built.gyro_keys.A)):
+        if present is not None:
+            blocks[name] = key
+    cov = marginal_covariances(built.graph, values, blocks.values(), "the IMU intrinsics")
     covariance = {name: cov[key] for name, key in blocks.items()}
-    _check_gyro_excitation(covariance)
+    _check_gyro_excitation(covariance, built.gyro_keys.M_free)
 
-    accel = fimu.accel_from_values(values, accel_keys, nominal_accel)
-    gyro = fimu.gyro_from_values(values, gyro_keys, nominal_gyro)
+    accel, gyro = built.accel(values), built.gyro(values)
     up = np.array([values.atUnit3(U(k)).point3() for k in range(len(poses))])
     f = accel.specific_force(np.array([p.accel_mean for p in poses]))
     gyro_residual = []
@@ -163,14 +271,15 @@ def solve_intrinsics(poses: list[StaticPose], moves: list[Move], gravity_m_s2: f
         gyro_residual.append(np.arccos(np.clip(predicted @ f[k + 1] / np.linalg.norm(f[k + 1]), -1, 1)))
     return IntrinsicsEstimate(accel=accel, gyro=gyro, covariance=covariance, up_S=up,
                               accel_norm_residual_m_s2=np.linalg.norm(f, axis=1) - gravity_m_s2,
-                              gyro_direction_residual_rad=np.array(gyro_residual), model=model)
+                              gyro_direction_residual_rad=np.array(gyro_residual), spec=spec)
 
 
-def _check_gyro_excitation(covariance: dict[str, np.ndarray]) -> None:
+def _check_gyro_excitation(covariance: dict[str, np.ndarray], free: tuple[int, ...]) -> None:
     """A gyro scale that the moves did not excite has a huge sigma: say which rotation is missing."""
-    if "gyro_M" not in covariance:
+    if "gyro_M" not in covariance or not set(GYRO_DIAGONAL) <= set(free):
         return
-    sigma_diag = np.sqrt(np.diag(covariance["gyro_M"]))[[0, 4, 8]]
+    sigma_all = np.sqrt(np.diag(covariance["gyro_M"]))
+    sigma_diag = sigma_all[[free.index(i) for i in GYRO_DIAGONAL]]
     weak = [axis for axis, s in zip("xyz", sigma_diag) if s > 0.05]
     if weak:
         raise DegenerateDataError(

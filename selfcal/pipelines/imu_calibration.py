@@ -12,7 +12,7 @@ from selfcal.graphs import imu_intrinsics as gi
 from selfcal.graphs import imu_pair as gp
 from selfcal.io.recording import ImuData, Recording, RecordingError
 from selfcal.models import imu
-from selfcal.models.static_intervals import detect_static_intervals, require_static_poses, static_poses
+from selfcal.models.static_intervals import detect_static_intervals
 
 log = logging.getLogger(__name__)
 
@@ -25,40 +25,11 @@ def gravity_of(data: ImuData, override: float | None = None) -> float:
     return float(override or data.meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2))
 
 
-def segment(data: ImuData, **detector_options):
-    """Static intervals of an IMU recording and the pose statistics, or a clear error if too few."""
-    t_s = data.t_s
-    intervals = detect_static_intervals(t_s, data.accel_m_s2, **detector_options)
-    poses = static_poses(t_s, data.accel_m_s2, data.gyro_rad_s, intervals)
-    require_static_poses(poses, gi.MIN_POSES_FULL_ACCEL)
-    return intervals, poses
-
-
-def intrinsics_problem(data: ImuData, intervals, poses):
-    """Static poses with sigmas of their means, and the moves between consecutive poses."""
-    # pooled median: robust to one slightly moving pose; a tiny floor keeps noise-free (simulated exact) data
-    # a regular system
-    accel_std = np.maximum(np.median([p.accel_std for p in poses], axis=0), 1e-9)
-    gyro_std = np.maximum(np.median([p.gyro_std for p in poses], axis=0), 1e-9)
-    graph_poses = [gi.StaticPose(p.accel_mean, p.gyro_mean, accel_std / np.sqrt(p.n_samples),
-                                 gyro_std / np.sqrt(p.n_samples)) for p in poses]
-    t_s = data.t_s
-    dt_all = np.diff(t_s, append=t_s[-1] + np.median(np.diff(t_s)))
-    moves = []
-    for (_, end), (start, _) in zip(intervals[:-1], intervals[1:]):
-        # the last static sample is held until the first moving one: include it, so the whole move integrates
-        idx = np.arange(end - 1, start)
-        dt = dt_all[idx]
-        moves.append(gi.Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt,
-                             float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2)))))
-    return graph_poses, moves
-
-
 @dataclass
 class ImuCalibration:
     sensor: str
     estimate: gi.IntrinsicsEstimate
-    intervals: list
+    n_static_poses: int
     gravity_m_s2: float
     raw_counts: dict | None = None
 
@@ -88,7 +59,7 @@ class ImuCalibration:
                              if len(e.gyro_direction_residual_rad) else None},
             "units": {"accel": "m s^-2", "gyro": "rad s^-1", "A": "rad s^-1 per m s^-2",
                       "residual_rms.gyro": "rad (gravity direction after each move)"},
-            "static_poses": len(self.intervals),
+            "static_poses": self.n_static_poses,
             "gravity_m_s2": self.gravity_m_s2,
         }
         if self.raw_counts:
@@ -109,14 +80,12 @@ class ImuCalibration:
                 f"{np.degrees(d['residual_rms']['gyro'] or 0):.3g} deg")
 
 
-def calibrate_imu(recording: Recording, sensor: str, model: gi.IntrinsicsModel = gi.IntrinsicsModel(),
+def calibrate_imu(recording: Recording, sensor: str, spec: gi.IntrinsicsSpec = gi.IntrinsicsSpec(),
                   gravity_m_s2: float | None = None) -> ImuCalibration:
     data = recording.imu(sensor)
-    intervals, poses = segment(data)
-    graph_poses, moves = intrinsics_problem(data, intervals, poses)
-    g = gravity_of(data, gravity_m_s2)
-    estimate = gi.solve_intrinsics(graph_poses, moves, g, model)
-    return ImuCalibration(sensor, estimate, intervals, g, data.meta.get("raw_counts"))
+    problem = gi.problem_from_imu(data, gravity_of(data, gravity_m_s2))
+    estimate = gi.solve_intrinsics(problem.poses, problem.moves, problem.gravity_m_s2, spec)
+    return ImuCalibration(sensor, estimate, len(problem.poses), problem.gravity_m_s2, data.meta.get("raw_counts"))
 
 
 # --- two IMUs -----------------------------------------------------------------------------------------------
