@@ -1,0 +1,264 @@
+"""The single-IMU system (``--system imu``) for the audit: intrinsics graph, residual families, effect catalog.
+
+Residual families (evaluated from the parameters alone, so held-out poses are predicted the same way):
+
+* ``accel``: ``|f_k| - g`` per static pose (m s^-2); coordinates: gravity direction ``up_x/y/z``, time, channels
+* ``gyro``: static gyro output minus bias and g-sensitivity per pose and axis (rad s^-1); same coordinates
+* ``gyro_motion``: ``u_{k+1} - delta_R^T u_k`` per move (rad), the up-directions from the calibrated
+  accelerometer; coordinates: the move's rotation vector ``rot_x/y/z``, time, channels
+
+Catalog (ARCHITECTURE.md's IMU table, plus ``bias_drift``: bias linear in time, the deterministic part of a
+wandering bias, and the rival a channel collinear with time must be told apart from):
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+
+from selfcal.audit.engine import Candidate, Fit, ResidualFamily
+from selfcal.graphs import imu_intrinsics as gi
+from selfcal.graphs.solve import marginal_covariances, optimize
+from selfcal.io.recording import ImuData
+from selfcal.models import imu, so3
+
+TIME_CHANNEL = "time_s"
+
+MEANINGS = {
+    "accel_scale": "accelerometer gain differs from nominal per axis",
+    "accel_misalignment": "accelerometer axes are not orthogonal",
+    "gyro_scale": "gyro gain differs from nominal per axis",
+    "gyro_misalignment": "gyro axes are not orthogonal / not aligned with the accelerometer",
+    "gyro_g_sensitivity": "gyro output depends on specific force",
+    "bias_temperature": "bias linear in the temperature channel",
+    "bias_drift": "bias changes linearly with time",
+}
+
+
+def is_temperature(channel: str) -> bool:
+    return channel.lower().startswith("temp")
+
+
+class ImuIntrinsicsAudit:
+    """Audit system for one IMU of a multi-position recording."""
+
+    name = "imu"
+    folds = 2
+
+    def __init__(self, data: ImuData, gravity_m_s2: float, base: str = "bias"):
+        timed = replace(data, channels={**data.channels, TIME_CHANNEL: data.t_s},
+                        channel_units={**data.channel_units, TIME_CHANNEL: "s"})
+        self.problem = gi.problem_from_imu(timed, gravity_m_s2)
+        self.sensor = data.name
+        self.base_model = base
+        catalog = self.candidates()
+        by_effect = {(c.effect, c.target): c for c in catalog}
+        if base == "bias":
+            self.base_effects = ()
+        elif base == "standard":
+            self.base_effects = tuple(by_effect[k] for k in (("accel_scale", "accel"), ("accel_misalignment", "accel"),
+                                                             ("gyro_scale", "gyro_motion"),
+                                                             ("gyro_misalignment", "gyro_motion")))
+        else:
+            raise ValueError(f"unknown base model {base!r} for system imu: choose 'bias' or 'standard'")
+        n = len(self.problem.poses)
+        self._fold_poses = [list(range(n // 2)), list(range(n // 2, n))]  # split in time: poses are in order
+
+    # --- catalog --------------------------------------------------------------------------------------------
+
+    def candidates(self) -> list[Candidate]:
+        s = self.sensor
+        out = [Candidate("accel_scale", s, MEANINGS["accel_scale"], "accel", "orientation"),
+               Candidate("accel_misalignment", s, MEANINGS["accel_misalignment"], "accel", "orientation"),
+               Candidate("gyro_scale", s, MEANINGS["gyro_scale"], "gyro_motion", "rotation of each move"),
+               Candidate("gyro_misalignment", s, MEANINGS["gyro_misalignment"], "gyro_motion",
+                         "rotation of each move"),
+               Candidate("gyro_g_sensitivity", s, MEANINGS["gyro_g_sensitivity"], "gyro", "orientation")]
+        for quantity in ("accel", "gyro"):
+            out.append(Candidate("bias_drift", s, MEANINGS["bias_drift"], quantity, "time"))
+            for channel in self.problem.channel_refs:
+                if channel == TIME_CHANNEL:
+                    continue
+                if is_temperature(channel):
+                    out.append(Candidate("bias_temperature", s, MEANINGS["bias_temperature"], quantity, channel))
+                else:
+                    unit = self.problem.channel_units.get(channel, "")
+                    out.append(Candidate(f"channel:{channel}", s,
+                                         f"{quantity} bias depends on auxiliary channel {channel} [{unit}]",
+                                         quantity, channel))
+        return out
+
+    @staticmethod
+    def _channel_of(c: Candidate) -> str | None:
+        if c.effect == "bias_drift":
+            return TIME_CHANNEL
+        if c.effect == "bias_temperature" or c.effect.startswith("channel:"):
+            return c.coordinate
+        return None
+
+    def spec_for(self, effects) -> gi.IntrinsicsSpec:
+        names = {c.effect for c in effects}
+        accel_free = sorted((gi.ACCEL_DIAGONAL if "accel_scale" in names else ())
+                            + (gi.ACCEL_OFF_DIAGONAL if "accel_misalignment" in names else ()))
+        gyro_free = sorted((gi.GYRO_DIAGONAL if "gyro_scale" in names else ())
+                           + (gi.GYRO_OFF_DIAGONAL if "gyro_misalignment" in names else ()))
+        channels = {q: tuple(self._channel_of(c) for c in effects if self._channel_of(c) and c.target == q)
+                    for q in ("accel", "gyro")}
+        return gi.IntrinsicsSpec(tuple(accel_free), tuple(gyro_free), "gyro_g_sensitivity" in names,
+                                 channels["accel"], channels["gyro"])
+
+    # --- fitting --------------------------------------------------------------------------------------------
+
+    def _train_poses(self, fold):
+        if fold is None:
+            return list(range(len(self.problem.poses)))
+        return self._fold_poses[fold]
+
+    def fit(self, effects, fold=None) -> Fit:
+        built = gi.build_graph(self.problem, self.spec_for(effects), huber_k=None,
+                               pose_indices=self._train_poses(fold))
+        values = optimize(built.graph, built.values)
+        return Fit(tuple(effects), built.graph, values, self._families(built, values, built.pose_indices), built)
+
+    def extend(self, fit: Fit, candidate: Candidate):
+        old_spec = fit.context
+        built = gi.build_graph(self.problem, self.spec_for(fit.effects + (candidate,)), huber_k=None,
+                               pose_indices=old_spec.pose_indices)
+        values = gtsam.Values()
+        new_columns = []
+        for key in built.values.keys():
+            if fit.values.exists(key) and key not in (gi.ACCEL_M, gi.GYRO_M):
+                values.insert(key, _get(fit.values, key))
+            else:
+                values.insert(key, _get(built.values, key))
+        # grown matrices: old free entries keep their fitted values, new ones start at nominal
+        for key, old_keys, new_keys, nominal in (
+                (gi.ACCEL_M, old_spec.accel_keys, built.accel_keys, imu.upper_triangular_entries(np.eye(3))),
+                (gi.GYRO_M, old_spec.gyro_keys, built.gyro_keys, np.eye(3).ravel())):
+            if not values.exists(key):
+                continue
+            entries = nominal.copy()
+            if fit.values.exists(key):
+                entries[list(old_keys.M_free)] = fit.values.atVector(key)
+            values.update(key, entries[list(new_keys.M_free)])
+            added = [i for i, e in enumerate(new_keys.M_free) if not fit.values.exists(key) or e not in old_keys.M_free]
+            if added:
+                new_columns.append((key, np.array(added)))
+        for key in built.values.keys():
+            if not fit.values.exists(key) and key not in (gi.ACCEL_M, gi.GYRO_M):
+                new_columns.append((key, np.arange(values.atVector(key).size)))
+        return built.graph, values, new_columns
+
+    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+        test = [k for k in range(len(self.problem.poses)) if k not in self._fold_poses[fold]]
+        return self._families(fit.context, fit.values, test)
+
+    # --- residuals ------------------------------------------------------------------------------------------
+
+    def _families(self, built: gi.IntrinsicsGraph, values, poses) -> list[ResidualFamily]:
+        p = self.problem
+        accel, gyro = built.accel(values), built.gyro(values)
+        slopes = built.channel_slopes(values)
+        channel_names = [n for n in p.channel_refs if n != TIME_CHANNEL]
+
+        def bias_offset(quantity, deviation):
+            """sum of slope x channel deviation: (3,) for a pose, (n, 3) for the samples of a move."""
+            return sum((np.multiply.outer(deviation[n], slopes[quantity][n]) for n in slopes[quantity]), 0.0)
+
+        f, up, coords = [], [], {k: [] for k in ("time_s", "up_x", "up_y", "up_z", *channel_names)}
+        accel_sig, gyro_res, gyro_sig = [], [], []
+        for k in poses:
+            pose, dev = p.poses[k], p.pose_deviation(k)
+            fk = accel.M @ (pose.accel_mean - accel.bias - bias_offset("accel", dev))
+            uk = fk / np.linalg.norm(fk)
+            f.append(fk)
+            up.append(uk)
+            accel_sig.append(float(np.sqrt(np.sum((uk * pose.accel_sigma) ** 2))))
+            gyro_res.append(pose.gyro_mean - gyro.bias - bias_offset("gyro", dev) - gyro.A @ (p.gravity_m_s2 * uk))
+            gyro_sig.append(pose.gyro_sigma)
+            coords["time_s"].append(pose.time_s)
+            for axis, value in zip(("up_x", "up_y", "up_z"), uk):
+                coords[axis].append(value)
+            for n in channel_names:
+                coords[n].append(pose.channels[n])
+        coords = {k: np.asarray(v) for k, v in coords.items()}
+        accel_res = (np.linalg.norm(f, axis=1) - p.gravity_m_s2)[:, None]
+        families = [
+            ResidualFamily(self.sensor, "accel", "m s^-2", accel_res / np.asarray(accel_sig)[:, None], accel_res,
+                           coords, tuple(channel_names)),
+            ResidualFamily(self.sensor, "gyro", "rad s^-1", np.asarray(gyro_res) / np.asarray(gyro_sig),
+                           np.asarray(gyro_res), coords, tuple(channel_names))]
+        motion, motion_sig = [], []
+        mcoords = {k: [] for k in ("time_s", "rot_x", "rot_y", "rot_z", *channel_names)}
+        index = {k: i for i, k in enumerate(poses)}
+        for k in poses:
+            if k + 1 not in index or k >= len(p.moves):
+                continue
+            move, dev = p.moves[k], p.move_deviation(k)
+            f_move = accel.specific_force(move.accel_raw)
+            w = gyro.rate(move.gyro_raw - bias_offset("gyro", dev), f_move)
+            delta_R = so3.integrate_rates(w, move.dt_s)
+            motion.append(up[index[k + 1]] - delta_R.T @ up[index[k]])
+            motion_sig.append(move.angle_sigma_rad)
+            rot = so3.log(so3.integrate_rates(move.gyro_raw, move.dt_s))
+            mcoords["time_s"].append(float(np.mean(move.time_s)))
+            for axis, value in zip(("rot_x", "rot_y", "rot_z"), rot):
+                mcoords[axis].append(value)
+            for n in channel_names:
+                mcoords[n].append(float(np.mean(move.channels[n])))
+        if motion:
+            motion = np.asarray(motion)
+            families.append(ResidualFamily(self.sensor, "gyro_motion", "rad", motion / np.asarray(motion_sig)[:, None],
+                                           motion, {k: np.asarray(v) for k, v in mcoords.items()},
+                                           tuple(channel_names)))
+        return families
+
+    # --- estimates in the contract's keys -------------------------------------------------------------------
+
+    def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        built: gi.IntrinsicsGraph = fit.context
+        values = fit.values
+        keys = [k for k in (gi.ACCEL_M, gi.GYRO_M, gi.GYRO_A) if values.exists(k)]
+        keys += [k for _, k in built.accel_keys.channels + built.gyro_keys.channels]
+        cov = marginal_covariances(fit.graph, values, keys, "the audited effect")
+        effect = candidate.effect
+        if effect in ("accel_scale", "accel_misalignment", "gyro_scale", "gyro_misalignment"):
+            accel_like = effect.startswith("accel")
+            key, free = (gi.ACCEL_M, built.accel_keys.M_free) if accel_like else (gi.GYRO_M, built.gyro_keys.M_free)
+            M = built.accel(values).M if accel_like else built.gyro(values).M
+            sigma = np.zeros(6 if accel_like else 9)
+            sigma[list(free)] = np.sqrt(np.diag(cov[key]))
+            sigma_M = imu.upper_triangular(sigma) if accel_like else sigma.reshape(3, 3)
+            K = np.diag(M)
+            if effect.endswith("scale"):
+                # scale = 1/K - 1, so its sigma is sigma_K / K^2
+                return {"scale": (1 / K - 1).tolist()}, {"scale": (np.diag(sigma_M) / K**2).tolist()}
+            T, sigma_T = M / K[None, :], sigma_M / K[None, :]
+            if accel_like:  # Tedaldi's T = [[1, -a_yz, a_zy], [0, 1, -a_zx], [0, 0, 1]]
+                idx, sign = [(0, 1), (0, 2), (1, 2)], np.array([-1.0, 1.0, -1.0])
+            else:  # every off-diagonal entry of the full gyro matrix, row-major
+                idx, sign = [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)], np.ones(6)
+            return ({"angles": (sign * np.array([T[i] for i in idx])).tolist()},
+                    {"angles": np.array([sigma_T[i] for i in idx]).tolist()})
+        if effect == "gyro_g_sensitivity":
+            return ({"matrix": values.atVector(gi.GYRO_A).tolist()},
+                    {"matrix": np.sqrt(np.diag(cov[gi.GYRO_A])).tolist()})
+        channel = self._channel_of(candidate)
+        slot = built.accel_keys if candidate.target == "accel" else built.gyro_keys
+        key = dict(slot.channels)[channel]
+        unit = "m s^-2" if candidate.target == "accel" else "rad s^-1"
+        per = "s" if channel == TIME_CHANNEL else self.problem.channel_units.get(channel, "")
+        target = f"{self.sensor}/{candidate.target}"
+        return ({"slope": values.atVector(key).tolist(), "unit": f"{unit} per {per}", "target": target},
+                {"slope": np.sqrt(np.diag(cov[key])).tolist()})
+
+
+def _get(values: gtsam.Values, key: int):
+    """A value of any of the types this system stores."""
+    for getter in (values.atUnit3, values.atVector):
+        try:
+            return getter(key)
+        except RuntimeError:
+            continue
+    raise KeyError(key)
