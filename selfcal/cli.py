@@ -17,7 +17,7 @@ class UsageError(Exception):
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse would print the usage and exit 2; we promise one line and exit 1
-        raise UsageError(f"{self.prog}: {message}")
+        raise UsageError(f"{message} (see: {self.prog} --help)")
 
 
 def _write_yaml(path, data: dict) -> None:

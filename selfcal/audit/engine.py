@@ -103,6 +103,11 @@ class Fit:
         return None
 
 
+def variance_factor(fit: Fit) -> float:
+    """A-posteriori variance factor RSS / (n - k): scales a fit's covariance to the residuals it really left."""
+    return fit.rss / max(fit.n_obs - fit.n_params, 1)
+
+
 class AuditSystem(Protocol):
     name: str
     base_model: str
@@ -141,7 +146,7 @@ def score_test(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         offsets[k] = column
         column += tangent.at(k).size
     A, b = graph.linearize(values).jacobian(ordering)
-    b = b.ravel()
+    A, b = np.array(A, order="C"), np.array(b).ravel()  # own, contiguous copies: LAPACK on GTSAM's view is ~100x slower
     new = np.concatenate([offsets[k] + np.asarray(idx, dtype=int) for k, idx in new_columns])
     keep = np.setdiff1d(np.arange(A.shape[1]), new)
     rss_old = _lstsq_rss(A[:, keep], b)

@@ -17,7 +17,7 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
-from selfcal.audit.engine import Candidate, Fit, ResidualFamily
+from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.graphs import imu_intrinsics as gi
 from selfcal.graphs.solve import marginal_covariances, optimize
 from selfcal.io.recording import ImuData
@@ -221,7 +221,8 @@ class ImuIntrinsicsAudit:
         values = fit.values
         keys = [k for k in (gi.ACCEL_M, gi.GYRO_M, gi.GYRO_A) if values.exists(k)]
         keys += [k for _, k in built.accel_keys.channels + built.gyro_keys.channels]
-        cov = marginal_covariances(fit.graph, values, keys, "the audited effect")
+        factor = variance_factor(fit)
+        cov = {k: c * factor for k, c in marginal_covariances(fit.graph, values, keys, "the audited effect").items()}
         effect = candidate.effect
         if effect in ("accel_scale", "accel_misalignment", "gyro_scale", "gyro_misalignment"):
             accel_like = effect.startswith("accel")
@@ -262,3 +263,44 @@ def _get(values: gtsam.Values, key: int):
         except RuntimeError:
             continue
     raise KeyError(key)
+
+
+def simulate_like(system: ImuIntrinsicsAudit, fit: Fit, seed: int) -> ImuIntrinsicsAudit:
+    """The recording's own scenario re-simulated with the model of ``fit``: same poses, moves and channels.
+
+    The first pose keeps its measured up-direction; every later one is where the fitted model's calibrated
+    gyro carries it, so the simulated recording is self-consistent under that model.  Raw means and samples
+    get white noise with the recording's own sigmas.  A model that explains the measurement leaves, on its
+    simulation, the residuals it leaves on the measurement; a model that does not, predicts too little.
+    """
+    rng = np.random.default_rng(seed)
+    built: gi.IntrinsicsGraph = fit.context
+    accel, gyro = built.accel(fit.values), built.gyro(fit.values)
+    slopes = built.channel_slopes(fit.values)
+    p = system.problem
+    g = p.gravity_m_s2
+
+    def offset(quantity, deviation):
+        return sum((np.multiply.outer(deviation[n], slopes[quantity][n]) for n in slopes[quantity]), 0.0)
+
+    f0 = accel.specific_force(p.poses[0].accel_mean[None] - offset("accel", p.pose_deviation(0)))[0]
+    up = f0 / np.linalg.norm(f0)
+    poses, moves = [], []
+    for k, pose in enumerate(p.poses):
+        dev = p.pose_deviation(k)
+        f = g * up
+        a = accel.raw_from_specific_force(f[None])[0] + offset("accel", dev) + rng.normal(0, pose.accel_sigma)
+        w = gyro.raw_from_rate(np.zeros((1, 3)), f[None])[0] + offset("gyro", dev) + rng.normal(0, pose.gyro_sigma)
+        poses.append(replace(pose, accel_mean=a, gyro_mean=w))
+        if k < len(p.moves):
+            move, mdev = p.moves[k], p.move_deviation(k)
+            f_move = accel.specific_force(move.accel_raw - offset("accel", mdev))
+            rates = gyro.rate(move.gyro_raw - offset("gyro", mdev), f_move)
+            sample_sigma = move.angle_sigma_rad / np.sqrt(np.sum(move.dt_s**2))
+            raw = gyro.raw_from_rate(rates, f_move) + offset("gyro", mdev) + rng.normal(0, sample_sigma, rates.shape)
+            moves.append(replace(move, gyro_raw=raw))
+            up = so3.integrate_rates(rates, move.dt_s).T @ up
+    twin = object.__new__(ImuIntrinsicsAudit)
+    twin.__dict__.update(system.__dict__)
+    twin.problem = replace(p, poses=poses, moves=moves)
+    return twin

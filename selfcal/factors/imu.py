@@ -85,8 +85,10 @@ def _fill(H, blocks):
 
 def static_accel_factor(noise, a_raw_mean, gravity_m_s2, up_key, keys: AccelKeys, nominal: imu.AccelIntrinsics,
                         channel_deviation: dict | None = None) -> gtsam.CustomFactor:
-    """Static pose: ``e = M_a (a_raw_mean - b_a - sum_c k_c dc) - g u``  (m s^-2, sensor frame).
+    """Static pose: ``e = a_raw_mean - b_a - sum_c k_c dc - M_a^-1 g u``  (raw output units, sensor frame).
 
+    In the raw domain so the noise model is the raw output's noise whatever the gain: the estimate in counts
+    per unit is then exactly invariant to the nominal transfer function used at import.
     ``channel_deviation``: the mean deviation of each auxiliary channel from its reference over this pose.
     """
     a = np.asarray(a_raw_mean, dtype=float)
@@ -96,14 +98,17 @@ def static_accel_factor(noise, a_raw_mean, gravity_m_s2, up_key, keys: AccelKeys
     def error(this, values, H):
         cal = accel_from_values(values, keys, nominal)
         up = values.atUnit3(up_key)
-        d = a - cal.bias - _channel_bias(values, keys.channels, dev)
-        e = cal.M @ d - gravity_m_s2 * up.point3()
+        M_inv = np.linalg.inv(cal.M)
+        v = M_inv @ (gravity_m_s2 * up.point3())  # the raw output a perfect-bias sensor would give
+        e = a - cal.bias - _channel_bias(values, keys.channels, dev) - v
         if H is not None:
+            # d(M^-1)/dM_ij = -M^-1 E_ij M^-1, so de/dM_ij = M^-1 e_i v_j
             dM = np.zeros((3, 6))
             for col, (i, j) in enumerate(imu.UPPER_TRIANGULAR_INDEX):
-                dM[i, col] = d[j]
-            _fill(H, [(up_key, -gravity_m_s2 * up.basis()), (keys.bias, -cal.M), (keys.M, dM[:, list(keys.M_free)])]
-                  + [(k, -cal.M * dev[name]) for name, k in keys.channels])
+                dM[:, col] = M_inv[:, i] * v[j]
+            _fill(H, [(up_key, -gravity_m_s2 * M_inv @ up.basis()), (keys.bias, -np.eye(3)),
+                      (keys.M, dM[:, list(keys.M_free)])]
+                  + [(k, -np.eye(3) * dev[name]) for name, k in keys.channels])
         return e
 
     return gtsam.CustomFactor(noise, ordered, error)

@@ -16,10 +16,13 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
+from scipy.signal import butter, savgol_filter, sosfiltfilt
 from scipy.spatial.transform import Rotation
 
 from selfcal.factors import imu as fimu
 from selfcal.graphs.solve import DegenerateDataError, marginal_covariances, optimize, robust
+from selfcal.io.recording import ImuData
+from selfcal.models.static_intervals import detect_static_intervals
 
 ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
 ACCEL_OFFSET, GYRO_OFFSET = gtsam.symbol("o", 0), gtsam.symbol("o", 1)
@@ -196,7 +199,8 @@ def solve_pair(static: list[StaticPair], dynamic: DynamicData | None, model: Pai
     if dynamic is not None:
         vectors0 += list(dynamic.gyro0)
         vectors1 += list(dynamic.gyro1.at(dynamic.t0_s - initial_dt_s)[0])
-    _check_rotation_excitation(np.array(vectors0))
+    # specific force while moving also fixes the rotation (gravity sweeps as the rig turns)
+    _check_rotation_excitation(np.array(vectors0 + ([] if dynamic is None else list(dynamic.accel0))))
     values = pair_values(wahba_rotation(np.array(vectors0), np.array(vectors1)), model, initial_dt_s)
     scale = {g: 1.0 for g in GROUPS}
     graph, groups = _build(static, dynamic, model, scale, huber_k)
@@ -247,3 +251,82 @@ def _check_rotation_excitation(vectors: np.ndarray) -> None:
         raise DegenerateDataError(
             "all measured vectors are parallel, so the rotation about them is free: hold the rig still in at "
             "least two orientations with different gravity directions, or rotate it about two different axes")
+
+
+# --- from recordings ----------------------------------------------------------------------------------------
+
+def _sample_sigma(data: ImuData, key: str, fallback: float) -> float:
+    density = data.meta.get(key)
+    return float(density * np.sqrt(data.rate_hz)) if density else fallback
+
+
+def truly_static_intervals(data: ImuData) -> list[tuple[int, int]]:
+    """Static intervals that are static in absolute terms too, or none.
+
+    The moving-variance detector is relative to the first seconds; a recording that never rests (a flight)
+    would look static throughout.  Keep only intervals whose gyro scatter is within 5 sigma of the gyro's
+    white noise (sensor.yaml), or 0.01 rad/s where the noise is not given.
+    """
+    try:
+        intervals = detect_static_intervals(data.t_s, data.accel_m_s2)
+    except ValueError:
+        return []
+    limit = 5 * _sample_sigma(data, "gyroscope_noise_density", 0.002)
+    quiet = [(a, b) for a, b in intervals if np.max(np.std(data.gyro_rad_s[a:b], axis=0)) < limit]
+    if not quiet:
+        return []
+    # a slow, steady rotation is quiet too: its mean rate stands out from the bias the rests share
+    bias = np.median([data.gyro_rad_s[a:b].mean(axis=0) for a, b in quiet], axis=0)
+    return [(a, b) for a, b in quiet if np.linalg.norm(data.gyro_rad_s[a:b].mean(axis=0) - bias) < limit]
+
+
+def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> np.ndarray:
+    """Zero-phase 4th-order Butterworth low-pass along time (no filtering when cutoff is None or >= Nyquist)."""
+    if not cutoff_hz or cutoff_hz >= 0.5 * rate_hz:
+        return x
+    return sosfiltfilt(butter(4, cutoff_hz, fs=rate_hz, output="sos"), x, axis=0)
+
+
+@dataclass
+class PairProblem:
+    """The graph's inputs extracted from a recording: static pose pairs, dynamic samples, a start dt."""
+
+    static: list
+    dynamic: DynamicData | None
+    initial_dt_s: float
+
+
+def problem_from_imus(d0: ImuData, d1: ImuData, lowpass_hz: float | None = 5.0) -> PairProblem:
+    """Static pose pairs (means over imu0's truly static intervals) and the moving samples between them."""
+    t0 = d0.t_s
+    t1 = (d1.t_ns - d0.t_ns[0]) * 1e-9  # imu1 stamps on imu0's time axis, before the offset
+    static = []
+    moving = np.ones(len(t0), dtype=bool)
+    for start, end in truly_static_intervals(d0):
+        moving[start:end] = False
+        sel1 = (t1 >= t0[start]) & (t1 < t0[end - 1])
+        if sel1.sum() < 3:
+            continue
+        a0, a1 = d0.accel_m_s2[start:end], d1.accel_m_s2[sel1]
+        sigma = np.sqrt(a0.var(axis=0) / len(a0) + a1.var(axis=0) / len(a1))
+        static.append(StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma, len(a0), len(a1)))
+    inside = (t0 > t1[0] + 0.5) & (t0 < t1[-1] - 0.5)  # room for any clock offset up to 0.5 s
+    rate = d0.rate_hz
+    # Zero-phase low-pass on both IMUs: the relation w0 = R w1(t - dt) is linear and time-invariant, so it
+    # survives identical filtering, while vibration that differs between mounting points does not pass.
+    g0, a0 = lowpass(d0.gyro_rad_s, rate, lowpass_hz), lowpass(d0.accel_m_s2, rate, lowpass_hz)
+    g1, a1 = lowpass(d1.gyro_rad_s, d1.rate_hz, lowpass_hz), lowpass(d1.accel_m_s2, d1.rate_hz, lowpass_hz)
+    # Nyquist spacing of the filtered band keeps the kept samples ~uncorrelated, so per-sample sigmas hold
+    step = max(1, round(rate / (2 * lowpass_hz))) if lowpass_hz else 1
+    idx = np.flatnonzero(moving & inside)
+    if len(idx) < max(50, 10 * step):  # under half a second of motion: nothing to learn from it
+        return PairProblem(static, None, 0.0)
+    idx = idx[::step]
+    w_dot = savgol_filter(g0, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
+    dynamic = DynamicData(
+        t0[idx], g0[idx], a0[idx], w_dot[idx], fimu.Signal(t1, g1), fimu.Signal(t1, a1),
+        gyro_sigma=np.hypot(_sample_sigma(d0, "gyroscope_noise_density", 0.01),
+                            _sample_sigma(d1, "gyroscope_noise_density", 0.01)),
+        accel_sigma=np.hypot(_sample_sigma(d0, "accelerometer_noise_density", 0.05),
+                             _sample_sigma(d1, "accelerometer_noise_density", 0.05)))
+    return PairProblem(static, dynamic, coarse_time_offset(t0, g0, t1, g1))

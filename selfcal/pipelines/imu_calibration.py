@@ -5,14 +5,11 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import butter, savgol_filter, sosfiltfilt
 
-from selfcal.factors.imu import Signal
 from selfcal.graphs import imu_intrinsics as gi
 from selfcal.graphs import imu_pair as gp
 from selfcal.io.recording import ImuData, Recording, RecordingError
 from selfcal.models import imu
-from selfcal.models.static_intervals import detect_static_intervals
 
 log = logging.getLogger(__name__)
 
@@ -129,77 +126,10 @@ class PairCalibration:
         return "\n".join(lines)
 
 
-def _sample_sigma(data: ImuData, key: str, fallback: float) -> float:
-    density = data.meta.get(key)
-    return float(density * np.sqrt(data.rate_hz)) if density else fallback
-
-
-def truly_static_intervals(data: ImuData) -> list[tuple[int, int]]:
-    """Static intervals that are static in absolute terms too, or none.
-
-    The moving-variance detector is relative to the first seconds; a recording that never rests (a flight)
-    would look static throughout.  Keep only intervals whose gyro scatter is within 5 sigma of the gyro's
-    white noise (sensor.yaml), or 0.01 rad/s where the noise is not given.
-    """
-    try:
-        intervals = detect_static_intervals(data.t_s, data.accel_m_s2)
-    except ValueError:
-        return []
-    limit = 5 * _sample_sigma(data, "gyroscope_noise_density", 0.002)
-    return [(a, b) for a, b in intervals if np.max(np.std(data.gyro_rad_s[a:b], axis=0)) < limit]
-
-
-def lowpass(x: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> np.ndarray:
-    """Zero-phase 4th-order Butterworth low-pass along time (no filtering when cutoff is None or >= Nyquist)."""
-    if not cutoff_hz or cutoff_hz >= 0.5 * rate_hz:
-        return x
-    return sosfiltfilt(butter(4, cutoff_hz, fs=rate_hz, output="sos"), x, axis=0)
-
-
-@dataclass
-class PairProblem:
-    """The graph's inputs extracted from a recording: static pose pairs, dynamic samples, a start dt."""
-
-    static: list
-    dynamic: gp.DynamicData | None
-    initial_dt_s: float
-
-
-def pair_problem(recording: Recording, imu0: str, imu1: str, lowpass_hz: float | None = 5.0) -> PairProblem:
-    """Static pose pairs (means over imu0's truly static intervals) and the moving samples between them."""
-    d0, d1 = recording.imu(imu0), recording.imu(imu1)
-    t0 = d0.t_s
-    t1 = (d1.t_ns - d0.t_ns[0]) * 1e-9  # imu1 stamps on imu0's time axis, before the offset
-    static = []
-    moving = np.ones(len(t0), dtype=bool)
-    for start, end in truly_static_intervals(d0):
-        moving[start:end] = False
-        sel1 = (t1 >= t0[start]) & (t1 < t0[end - 1])
-        if sel1.sum() < 3:
-            continue
-        a0, a1 = d0.accel_m_s2[start:end], d1.accel_m_s2[sel1]
-        sigma = np.sqrt(a0.var(axis=0) / len(a0) + a1.var(axis=0) / len(a1))
-        static.append(gp.StaticPair(a0.mean(axis=0), a1.mean(axis=0), sigma, len(a0), len(a1)))
-    inside = (t0 > t1[0] + 0.5) & (t0 < t1[-1] - 0.5)  # room for any clock offset up to 0.5 s
-    rate = d0.rate_hz
-    # Zero-phase low-pass on both IMUs: the relation w0 = R w1(t - dt) is linear and time-invariant, so it
-    # survives identical filtering, while vibration that differs between mounting points does not pass.
-    g0, a0 = lowpass(d0.gyro_rad_s, rate, lowpass_hz), lowpass(d0.accel_m_s2, rate, lowpass_hz)
-    g1, a1 = lowpass(d1.gyro_rad_s, d1.rate_hz, lowpass_hz), lowpass(d1.accel_m_s2, d1.rate_hz, lowpass_hz)
-    # Nyquist spacing of the filtered band keeps the kept samples ~uncorrelated, so per-sample sigmas hold
-    step = max(1, round(rate / (2 * lowpass_hz))) if lowpass_hz else 1
-    idx = np.flatnonzero(moving & inside)
-    if len(idx) < max(50, 10 * step):  # under half a second of motion: nothing to learn from it
-        return PairProblem(static, None, 0.0)
-    idx = idx[::step]
-    w_dot = savgol_filter(g0, 2 * int(0.05 * rate) + 3, 3, deriv=1, delta=1.0 / rate, axis=0)
-    dynamic = gp.DynamicData(
-        t0[idx], g0[idx], a0[idx], w_dot[idx], Signal(t1, g1), Signal(t1, a1),
-        gyro_sigma=np.hypot(_sample_sigma(d0, "gyroscope_noise_density", 0.01),
-                            _sample_sigma(d1, "gyroscope_noise_density", 0.01)),
-        accel_sigma=np.hypot(_sample_sigma(d0, "accelerometer_noise_density", 0.05),
-                             _sample_sigma(d1, "accelerometer_noise_density", 0.05)))
-    return PairProblem(static, dynamic, gp.coarse_time_offset(t0, g0, t1, g1))
+# A lever arm known only to a centimetre, or a clock offset only to a millisecond, is not worth reporting as
+# calibrated: at hand-held rates they change the predicted specific force by less than MEMS noise.
+LEVER_ARM_SIGMA_MAX_M = 0.01
+TIME_OFFSET_SIGMA_MAX_S = 1e-3
 
 
 def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
@@ -207,17 +137,17 @@ def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bo
     """Rotation imu0 <- imu1 from the static poses (if any) and the moving parts of the recording.
 
     ``lever_arm`` / ``time_offset``: True forces, False skips, None estimates where the data determine them
-    (sigma below 5 cm / 5 ms), and says so in the notes otherwise.
+    (1-sigma below ``LEVER_ARM_SIGMA_MAX_M`` / ``TIME_OFFSET_SIGMA_MAX_S``), and says so in the notes otherwise.
     """
-    problem = pair_problem(recording, imu0, imu1, lowpass_hz)
+    problem = gp.problem_from_imus(recording.imu(imu0), recording.imu(imu1), lowpass_hz)
     static, dynamic, dt0 = problem.static, problem.dynamic, problem.initial_dt_s
     if not static and dynamic is None:
         raise gp.DegenerateDataError(f"{imu0}/{imu1}: no static poses and no motion found in the recording")
     model = gp.PairModel(time_offset=dynamic is not None and time_offset is not False,
                          lever_arm=dynamic is not None and lever_arm is not False)
     estimate = gp.solve_pair(static, dynamic, model, initial_dt_s=dt0)
-    weak_dt = model.time_offset and estimate.time_offset_sigma_s > 5e-3
-    weak_r = model.lever_arm and float(np.max(estimate.lever_arm_sigma_m)) > 0.05
+    weak_dt = model.time_offset and estimate.time_offset_sigma_s > TIME_OFFSET_SIGMA_MAX_S
+    weak_r = model.lever_arm and float(np.max(estimate.lever_arm_sigma_m)) > LEVER_ARM_SIGMA_MAX_M
     advice = {"time offset": (weak_dt, "needs rotation whose rate changes quickly (shake or twist the rig)"),
               "lever arm": (weak_r, "needs rotation rate and angular acceleration about several axes")}
     forced = {"time offset": time_offset, "lever arm": lever_arm}

@@ -14,7 +14,6 @@ import numpy as np
 from selfcal.baselines import patent_002_rotation as patent
 from selfcal.graphs import imu_pair as gp
 from selfcal.models import so3
-from selfcal.pipelines.imu_calibration import pair_problem
 from selfcal.sim.imu_scenarios import ImuNoise, ImuPairScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
 
@@ -83,6 +82,10 @@ def _with_true_sigmas(problem, scenario: ImuPairScenario):
     return problem
 
 
+def _problem(recording, lowpass_hz):
+    return gp.problem_from_imus(recording.imu("imu0"), recording.imu("imu1"), lowpass_hz)
+
+
 def _white(noise: ImuNoise, rate_hz: float) -> tuple[float, float]:
     """Per-sample white-noise sigmas (accelerometer, gyro)."""
     return noise.accelerometer_noise_density * np.sqrt(rate_hz), noise.gyroscope_noise_density * np.sqrt(rate_hz)
@@ -97,13 +100,13 @@ def imu_pair_rotation_study(n_runs: int, scenario: ImuPairScenario | None = None
     """
     scenario = scenario or pair_scenario()
     R_true = np.asarray(scenario.truth()["pair"]["rotation_imu0_imu1"])
-    bound_problem = _with_true_sigmas(pair_problem(scenario.exact_measurements(), "imu0", "imu1", None), scenario)
+    bound_problem = _with_true_sigmas(_problem(scenario.exact_measurements(), None), scenario)
     bound = gp.rotation_covariance_at(bound_problem.static, bound_problem.dynamic, model,
                                       _truth_values(scenario, model))
     errors, nees, errors_patent = [], [], []
     t_graph = t_patent = 0.0
     for run in range(n_runs):
-        problem = pair_problem(scenario.perturbed_measurements(first_seed + run), "imu0", "imu1", lowpass_hz)
+        problem = _problem(scenario.perturbed_measurements(first_seed + run), lowpass_hz)
         start = time.perf_counter()
         est = gp.solve_pair(problem.static, problem.dynamic, model, initial_dt_s=problem.initial_dt_s)
         t_graph += time.perf_counter() - start

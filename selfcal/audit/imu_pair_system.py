@@ -1,0 +1,124 @@
+"""The two-IMU system (``--system imu-pair``) for the audit.
+
+Base model (``rotation``): the patent's relation ``v0 = R v1`` for static and moving samples, with constant
+relative accelerometer and gyro offsets.  Catalog: ``time_offset`` (t_imu0 = t_imu1 + dt: shows as a gyro
+residual proportional to angular acceleration) and ``lever_arm`` (imu1 displaced by r: shows as an
+accelerometer residual ``[w_dot]x r + [w]x^2 r``, growing with rotation rate).
+
+Residual families: ``pair_gyro`` (rad s^-1) and ``pair_accel`` (m s^-2) per moving sample, ``pair_static``
+(m s^-2) per static pose; coordinates: time, |w|, |w_dot| of imu0.  Folds split the recording in two halves.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+
+from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.graphs import imu_pair as gp
+from selfcal.graphs.solve import marginal_covariances, optimize
+from selfcal.io.recording import ImuData
+from selfcal.models import imu
+
+MEANINGS = {"time_offset": "the clocks of the two IMUs are offset: t_imu0 = t_imu1 + dt",
+            "lever_arm": "imu1 is displaced from imu0: rotation adds centripetal and tangential acceleration"}
+
+
+class ImuPairAudit:
+    name = "imu-pair"
+    folds = 2
+    base_model = "rotation"
+
+    def __init__(self, d0: ImuData, d1: ImuData, lowpass_hz: float | None = 5.0):
+        self.imu0, self.imu1 = d0.name, d1.name
+        problem = gp.problem_from_imus(d0, d1, lowpass_hz)
+        if problem.dynamic is None:
+            raise gp.DegenerateDataError(f"{d0.name}/{d1.name}: the imu-pair audit needs motion (none found)")
+        self.static, self.dynamic, self.initial_dt_s = problem.static, problem.dynamic, problem.initial_dt_s
+        self.base_effects = ()
+        half = 0.5 * (self.dynamic.t0_s[0] + self.dynamic.t0_s[-1])
+        self._halves = [self.dynamic.t0_s < half, self.dynamic.t0_s >= half]
+        self.scale = {g: 1.0 for g in gp.GROUPS}
+        base = self.fit(())  # per-group noise level from the base fit's residuals (kept for every later fit)
+        self.scale = {fam.quantity.removeprefix("pair_"): max(float(np.sqrt(np.mean(fam.whitened**2))), 1e-6)
+                      for fam in base.families}
+        for g in gp.GROUPS:
+            self.scale.setdefault(g, 1.0)
+
+    def candidates(self) -> list[Candidate]:
+        return [Candidate("time_offset", self.imu1, MEANINGS["time_offset"], "pair_gyro", "angular acceleration"),
+                Candidate("lever_arm", self.imu1, MEANINGS["lever_arm"], "pair_accel", "angular rate")]
+
+    def _model(self, effects) -> gp.PairModel:
+        names = {c.effect for c in effects}
+        return gp.PairModel(time_offset="time_offset" in names, lever_arm="lever_arm" in names)
+
+    def _data(self, part):
+        """Static pairs and dynamic samples of all data (None) or of one half."""
+        if part is None:
+            return self.static, self.dynamic
+        mask = self._halves[part]
+        d = self.dynamic
+        dynamic = replace(d, t0_s=d.t0_s[mask], gyro0=d.gyro0[mask], accel0=d.accel0[mask],
+                          gyro_rate_dot0=d.gyro_rate_dot0[mask])
+        n = len(self.static)
+        static = self.static[:n // 2] if part == 0 else self.static[n // 2:]
+        return static, dynamic
+
+    def fit(self, effects, fold=None) -> Fit:
+        model = self._model(effects)
+        static, dynamic = self._data(fold)
+        graph, _ = gp._build(static, dynamic, model, self.scale, huber_k=None)
+        vectors0 = [p.accel0 for p in static] + list(dynamic.gyro0)
+        vectors1 = [p.accel1 for p in static] + list(dynamic.gyro1.at(dynamic.t0_s - self.initial_dt_s)[0])
+        values = gp.pair_values(gp.wahba_rotation(np.array(vectors0), np.array(vectors1)), model,
+                                self.initial_dt_s if model.time_offset else 0.0)
+        values = optimize(graph, values)
+        return Fit(tuple(effects), graph, values, self._families(values, model, static, dynamic),
+                   {"model": model, "fold": fold})
+
+    def extend(self, fit: Fit, candidate: Candidate):
+        model = self._model(fit.effects + (candidate,))
+        static, dynamic = self._data(fit.context["fold"])
+        graph, _ = gp._build(static, dynamic, model, self.scale, huber_k=None)
+        values = gtsam.Values(fit.values)
+        key = gp.TIME_OFFSET if candidate.effect == "time_offset" else gp.LEVER_ARM
+        values.insert(key, np.zeros(1 if key == gp.TIME_OFFSET else 3))
+        return graph, values, [(key, np.arange(1 if key == gp.TIME_OFFSET else 3))]
+
+    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+        static, dynamic = self._data(1 - fold)
+        return self._families(fit.values, fit.context["model"], static, dynamic)
+
+    def _families(self, values, model: gp.PairModel, static, dynamic) -> list[ResidualFamily]:
+        R = values.atRot3(gp.ROTATION).matrix()
+        dt = values.atVector(gp.TIME_OFFSET)[0] if model.time_offset else 0.0
+        r = values.atVector(gp.LEVER_ARM) if model.lever_arm else np.zeros(3)
+        d_a = values.atVector(gp.ACCEL_OFFSET) if values.exists(gp.ACCEL_OFFSET) else np.zeros(3)
+        d_g = values.atVector(gp.GYRO_OFFSET) if values.exists(gp.GYRO_OFFSET) else np.zeros(3)
+        t = dynamic.t0_s
+        coords = {"time_s": t, "angular_rate": np.linalg.norm(dynamic.gyro0, axis=1),
+                  "angular_acceleration": np.linalg.norm(dynamic.gyro_rate_dot0, axis=1)}
+        gyro = dynamic.gyro0 - dynamic.gyro1.at(t - dt)[0] @ R.T - d_g
+        lever = np.einsum("nij,j->ni", imu.lever_arm_jacobian(dynamic.gyro0, dynamic.gyro_rate_dot0), r)
+        accel = dynamic.accel0 + lever - dynamic.accel1.at(t - dt)[0] @ R.T - d_a
+        families = [
+            ResidualFamily(self.imu1, "pair_gyro", "rad s^-1", gyro / (dynamic.gyro_sigma * self.scale["gyro"]), gyro,
+                           coords),
+            ResidualFamily(self.imu1, "pair_accel", "m s^-2", accel / (dynamic.accel_sigma * self.scale["accel"]),
+                           accel, coords)]
+        if static:
+            e = np.array([p.accel0 - R @ p.accel1 - d_a for p in static])
+            sigma = np.array([p.sigma for p in static]) * self.scale["static"]
+            families.append(ResidualFamily(self.imu1, "pair_static", "m s^-2", e / sigma, e,
+                                           {"pose": np.arange(len(static), dtype=float)}))
+        return families
+
+    def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        key = gp.TIME_OFFSET if candidate.effect == "time_offset" else gp.LEVER_ARM
+        cov = marginal_covariances(fit.graph, fit.values, [key], candidate.effect)[key] * variance_factor(fit)
+        value, sigma = fit.values.atVector(key), np.sqrt(np.diag(cov))
+        if key == gp.TIME_OFFSET:
+            return {"dt_s": float(value[0])}, {"dt_s": float(sigma[0])}
+        return {"r_m": value.tolist()}, {"r_m": sigma.tolist()}
