@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
@@ -59,6 +60,42 @@ def _cmd_calibrate_imu_pair(args) -> None:
         _write_yaml(args.out, cal.to_dict())
 
 
+def _cmd_audit(args) -> None:
+    from selfcal.io.atomic import atomic_write_text
+    from selfcal.io.recording import read_recording
+    from selfcal.pipelines.audit import audit_recording
+    if not args.json and not args.report:
+        raise UsageError("nothing to write: give --json OUT.json and/or --report OUT.html")
+    rec = read_recording(args.recording)
+    sensors = [name for name in (args.imu, args.imu1) if name] or None
+    run = audit_recording(rec, args.system, args.base, sensors, progress=log.info)
+    for finding in run.result.findings:
+        print(f"found {finding['effect']} ({finding['target']}): RMS {finding['gain']['rms_before']:.4g} -> "
+              f"{finding['gain']['rms_after']:.4g}, held-out {finding['gain']['heldout_rms_before']:.4g} -> "
+              f"{finding['gain']['heldout_rms_after']:.4g}"
+              + (" [ambiguous with " + ", ".join(r["effect"] for r in finding["ambiguous_with"]) + "]"
+                 if finding.get("ambiguous_with") else ""))
+    if not run.result.findings:
+        print("no finding: the data give no significant evidence against the base model")
+    if args.json:
+        atomic_write_text(Path(args.json), json.dumps(run.to_json(), indent=1, default=_plain) + "\n")
+        log.info("wrote %s", args.json)
+    if args.report:
+        from selfcal.audit.report import write_report
+        write_report(run.result, Path(args.report), run.report_extras(str(args.recording)))
+        print(f"report: {args.report}")
+
+
+def _plain(obj):
+    """JSON for numpy scalars and arrays."""
+    import numpy as np
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
 def _cmd_import(args) -> None:
     from selfcal.io.importers import IMPORTERS
     from selfcal.io.recording import write_recording
@@ -95,6 +132,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="zero-phase low-pass applied to both IMUs before the dynamic pairs, Hz (0: none)")
     p.add_argument("--out", help="calibration YAML to write")
     p.set_defaults(run=_cmd_calibrate_imu_pair)
+
+    p = verbs.add_parser("audit", help="find what the model gets wrong in a recording, name the cause, measure the gain")
+    p.add_argument("recording")
+    p.add_argument("--system", required=True, choices=["imu", "imu-pair"])
+    p.add_argument("--base", help="base model: imu: bias (default) or standard; imu-pair: rotation")
+    p.add_argument("--imu", help="IMU to audit (imu) or reference IMU (imu-pair); default: the first")
+    p.add_argument("--imu1", help="second IMU for imu-pair; default: the second")
+    p.add_argument("--json", help="findings in the audit JSON contract")
+    p.add_argument("--report", help="HTML report with plots")
+    p.set_defaults(run=_cmd_audit)
 
     p = verbs.add_parser("import", help="convert a public dataset into a recording")
     p.add_argument("kind", help="dataset kind: imu-tk-xsens, mpu6050-tomisuarez, ansfl-quadrotor")

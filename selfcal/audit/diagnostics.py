@@ -101,14 +101,14 @@ def binned_anova(y, c, bins: int | None = None) -> tuple[float, int]:
     """(p-value, number of groups) of a one-way ANOVA of y across quantile bins of c.
 
     Detects any dependence on c, linear or not (a residual that is high at both ends of c and low in the middle
-    has no slope but different bin means).  Default ``bins = clip(n // 6, 2, 6)``: enough values per bin for a
+    has no slope but different bin means).  Default ``bins = clip(n // 5, 2, 6)``: enough values per bin for a
     stable mean.  Tied coordinate values stay in one bin; NaN when fewer than two bins with two values remain.
     """
     y, c = np.asarray(y, dtype=float), np.asarray(c, dtype=float)
     ok = np.isfinite(y) & np.isfinite(c)
     y, c = y[ok], c[ok]
     n = y.size
-    bins = int(bins) if bins is not None else int(np.clip(n // 6, 2, 6))
+    bins = int(bins) if bins is not None else int(np.clip(n // 5, 2, 6))
     if n < 4 or np.ptp(c) == 0.0:
         return float("nan"), 0
     edges = np.unique(np.quantile(c, np.linspace(0.0, 1.0, bins + 1)))

@@ -39,6 +39,7 @@ R. E. Kass, A. E. Raftery, "Bayes factors", J. Am. Stat. Assoc. 90, 773-795, 199
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -47,7 +48,7 @@ from typing import Callable
 
 import allantools
 import numpy as np
-from scipy import optimize, special, stats
+from scipy import linalg, optimize, special, stats
 
 from selfcal.io.atomic import atomic_write_bytes
 
@@ -56,6 +57,11 @@ log = logging.getLogger(__name__)
 FLICKER_FACTOR = 2.0 * math.log(2.0) / math.pi  # AVAR of flicker (flat part) = FLICKER_FACTOR B^2
 BIC_THRESHOLD = -10.0
 SHORT_TAU_MAX_S = 1.0
+STOP_RATIO = 8.0
+# the model-error term f (std of ln AVAR) lives in [MODEL_ERROR_MIN, 10]; at the lower end it is negligible
+# against every statistical error (s_i >= ~1.6e-3 for a million samples), so "f = 0" is reachable
+MODEL_ERROR_MIN = 1e-5
+FIT_MODEL_ERROR_STARTS = (MODEL_ERROR_MIN,)
 EXTENSIONS = ("random_walk", "gauss_markov", "flicker", "flicker_random_walk")
 QUANTITIES = {"accel": ("m s^-2", "accelerometer"), "gyro": ("rad s^-1", "gyroscope")}
 
@@ -132,7 +138,28 @@ def noise_type_from_slope(taus_s: np.ndarray, adev: np.ndarray) -> np.ndarray:
     return alpha
 
 
-def allan_curve(x, rate_hz: float, taus="octave") -> AllanCurve:
+def tau_list(n: int, rate_hz: float, taus="octave", stop_ratio: float = STOP_RATIO) -> np.ndarray:
+    """Averaging times (s) for a series of ``n`` samples: whole numbers of samples ``m`` with ``m <= n / stop_ratio``.
+
+    ``"octave"``: m = 1, 2, 4, ...; ``"decade"``: m = 1, 2, 4, 10, 20, 40, ...; an array: its values rounded to
+    whole samples.  The stop ratio 8 keeps every point above about 3 equivalent degrees of freedom (at m = n/4,
+    allantools' own limit, an overlapping estimate can rest on a single degree of freedom).
+    """
+    m_max = n / stop_ratio
+    if isinstance(taus, str):
+        if taus == "octave":
+            m = 2.0 ** np.arange(0, max(int(np.floor(np.log2(m_max))), 0) + 1)
+        elif taus == "decade":
+            m = np.array([f * 10.0**k for k in range(int(np.log10(max(m_max, 1))) + 1) for f in (1, 2, 4)])
+        else:
+            raise ValueError(f"taus must be 'octave', 'decade' or an array of s, got {taus!r}")
+    else:
+        m = np.rint(np.asarray(taus, dtype=float) * rate_hz)
+    m = np.unique(m[(m >= 1) & (m <= max(m_max, 1))])
+    return m / rate_hz
+
+
+def allan_curve(x, rate_hz: float, taus="octave", stop_ratio: float = STOP_RATIO) -> AllanCurve:
     """Overlapping Allan deviation (allantools.oadev) per axis, with edf-based error bars.
 
     Parameters
@@ -142,8 +169,9 @@ def allan_curve(x, rate_hz: float, taus="octave") -> AllanCurve:
     rate_hz : float
         Sample rate, Hz.
     taus : {"octave", "decade"} or array_like
-        Averaging times (allantools' keywords, or values in s rounded to whole samples).  ``"octave"``
-        (1, 2, 4, ... samples, up to about a quarter of the series) keeps neighbouring points a factor 2 apart.
+        Averaging times (see :func:`tau_list`); ``"octave"`` keeps neighbouring points a factor 2 apart.
+    stop_ratio : float
+        Longest tau is ``N / stop_ratio`` samples.
 
     Returns
     -------
@@ -158,21 +186,21 @@ def allan_curve(x, rate_hz: float, taus="octave") -> AllanCurve:
     x = np.asarray(x, dtype=float)
     one_axis = x.ndim == 1
     cols = x[:, None] if one_axis else x
-    if cols.ndim != 2 or cols.shape[0] < 8:
-        raise ValueError(f"need (N,) or (N, k) samples with N >= 8, got shape {x.shape}")
+    if cols.ndim != 2 or cols.shape[0] < 16:
+        raise ValueError(f"need (N,) or (N, k) samples with N >= 16, got shape {x.shape}")
     if not np.all(np.isfinite(cols)):
         raise ValueError("samples hold NaN or inf")
     n = cols.shape[0]
+    taus_in = tau_list(n, rate_hz, taus, stop_ratio)
     taus_ref = None
     adevs, errs, edfs, alphas = [], [], [], []
     for j in range(cols.shape[1]):
-        t, ad, _, _ = allantools.oadev(cols[:, j], rate=float(rate_hz), data_type="freq", taus=taus)
-        keep = ad > 0  # a constant channel (or a zero-variance tau) carries no information
+        t, ad, _, _ = allantools.oadev(cols[:, j], rate=float(rate_hz), data_type="freq", taus=taus_in)
         if taus_ref is None:
             taus_ref = t
         elif not np.array_equal(t, taus_ref):
             raise ValueError("axes gave different tau lists")
-        if not keep.all():
+        if not np.all(ad > 0):  # a constant channel carries no information (and breaks the log-space fit)
             raise ValueError(f"axis {j}: zero Allan deviation (constant samples?)")
         alpha = noise_type_from_slope(t, ad)
         m = np.rint(t * rate_hz).astype(int)
@@ -257,12 +285,13 @@ MODELS = {
 class ModelFit:
     """A noise model fitted to an Allan curve by maximum likelihood in log Allan variance.
 
-    Point ``i`` has the residual ``r_i = ln AVAR_hat_i - ln AVAR_model_i - m_i`` and the variance ``v_i = s_i^2 +
-    f^2``: ``m_i, s_i`` the mean and std of ``ln(chi2_nu / nu)`` (module notes), ``f`` a model-error term fitted
-    with the parameters.  ``nll = sum(r_i^2 / v_i + ln v_i)`` is -2 log-likelihood (constants dropped),
-    ``chi2 = sum(r_i^2 / v_i)``, ``bic = nll + (k + 1) ln n`` over the ``n`` tau points (``k`` model parameters
-    plus ``f``).  ``std`` is from ``(J^T V^-1 J)^-1`` (J: derivatives of ``ln AVAR_model`` with respect to the
-    log parameters), mapped to the parameters by the delta method; ``cov_log`` is that covariance.
+    The residuals ``r_i = ln AVAR_hat_i - ln AVAR_model_i - m_i`` (``m_i``: mean of ``ln(chi2_nu / nu)``, module
+    notes) are Gaussian with covariance ``C = S R S + f^2 I``: ``S = diag(s_i)`` the stds of ``ln(chi2_nu /
+    nu)``, ``R`` the correlation of the overlapping estimates (:func:`oadev_correlation`), ``f`` a model-error
+    term fitted with the parameters.  ``nll = r^T C^-1 r + ln det C`` is -2 log-likelihood (constants dropped),
+    ``chi2 = r^T C^-1 r``, ``bic = nll + k ln n`` over the ``n`` tau points (``k`` model parameters plus ``f``).
+    ``std`` is from ``(J^T C^-1 J)^-1`` (J: derivatives of ``ln AVAR_model`` with respect to the log
+    parameters; ``cov_log`` is that covariance), mapped to the parameters by the delta method.
     """
 
     model: str
@@ -301,13 +330,88 @@ def _log_law(edf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return special.digamma(half) - np.log(half), np.sqrt(special.polygamma(1, half))
 
 
+@functools.lru_cache(maxsize=64)
+def _oadev_correlation_cached(m: tuple, n: int, max_ratio: float, m_ref: int) -> np.ndarray:
+    k = len(m)
+    corr = np.eye(k)
+
+    def kernel(mm):
+        return np.concatenate([-np.ones(mm), np.ones(mm)]) / (mm * math.sqrt(2.0))
+
+    for i in range(k):
+        for j in range(i + 1, k):
+            m1, m2 = m[i], m[j]
+            if max(m1, m2) / min(m1, m2) > max_ratio:
+                continue
+            q = max(1.0, min(m1, m2) / m_ref)  # scale invariance: same correlation at m / q, lags times q
+            m1s, m2s = max(int(round(m1 / q)), 1), max(int(round(m2 / q)), 1)
+            n1, n2 = n + 1 - 2 * m1, n + 1 - 2 * m2  # terms of each overlapping estimate
+
+            def weighted(ma, mb, na, nb):
+                c = np.correlate(kernel(ma), kernel(mb), "full")  # lag l = -(2 mb - 1) .. 2 ma - 1
+                lag = (np.arange(c.size) - (2 * mb - 1)) * q
+                count = np.clip(np.minimum(na, nb - lag) - np.maximum(0, -lag), 0, None)
+                return float(np.sum(count * c**2)) / (na * nb)
+
+            s12 = weighted(m1s, m2s, n1, n2)
+            corr[i, j] = corr[j, i] = s12 / math.sqrt(weighted(m1s, m1s, n1, n1) * weighted(m2s, m2s, n2, n2))
+    w, v = np.linalg.eigh(corr)
+    if w.min() < 1e-3:  # the band cut can cost positive definiteness: lift the spectrum, keep unit diagonal
+        corr = (v * np.clip(w, 1e-3, None)) @ v.T
+        d = np.sqrt(np.diag(corr))
+        corr = corr / np.outer(d, d)
+    return corr
+
+
+def oadev_correlation(m, n: int, max_ratio: float = 16.0, m_ref: int = 128) -> np.ndarray:
+    """Correlation matrix of overlapping Allan variance estimates at averaging factors ``m`` (white rate noise).
+
+    For Gaussian data ``AVAR_hat(m) = mean_i d_i(m)^2`` with ``d_i`` the difference of two adjacent cluster
+    means, so ``Cov(AVAR_hat(m1), AVAR_hat(m2)) = 2 / (n1 n2) sum_(i,j) Cov(d_i(m1), d_j(m2))^2``, which for white
+    noise is a sum over lags of the squared cross-correlation of the two difference kernels, weighted by the
+    number of term pairs at each lag.  Computed exactly, except: the kernels are scaled down to ``m_ref``
+    (the correlation is scale invariant in ``m`` at fixed ``n / m``), and pairs more than ``max_ratio`` apart
+    are set uncorrelated (octave neighbours: about 0.52, 0.18, 0.05, 0.01 at 1, 2, 3, 4 octaves).  The same
+    matrix holds for ``ln AVAR_hat`` to first order.  For flicker or random-walk noise the true correlations
+    are larger: there this matrix is an approximation from below.
+    """
+    return _oadev_correlation_cached(tuple(int(x) for x in m), int(n), float(max_ratio), int(m_ref))
+
+
+class _LogLikelihood:
+    """Gaussian likelihood of ``ln AVAR_hat`` on one axis: mean ``ln AVAR_model + m_i``, covariance
+    ``C(f) = S R S + f^2 I`` (S = diag of the log-law stds, R the white-noise correlation of the estimates,
+    f the model-error term)."""
+
+    def __init__(self, curve: AllanCurve):
+        offset, self.s = _log_law(curve.edf)
+        self.y = np.log(curve.adev**2) - offset
+        self.taus_s = curve.taus_s
+        m = np.rint(curve.taus_s * curve.rate_hz).astype(int)
+        self.sRs = oadev_correlation(m, curve.n_samples) * np.outer(self.s, self.s)
+
+    def cholesky(self, f: float) -> np.ndarray:
+        return np.linalg.cholesky(self.sRs + f**2 * np.eye(len(self.y)))
+
+    def terms(self, r: np.ndarray, f: float) -> tuple[float, float]:
+        """``(nll, chi2)``: ``r^T C^-1 r + ln det C`` and ``r^T C^-1 r`` for residuals ``r`` (log AVAR)."""
+        chol = self.cholesky(f)
+        w = linalg.solve_triangular(chol, r, lower=True)
+        chi2 = float(w @ w)
+        return chi2 + 2.0 * float(np.sum(np.log(np.diag(chol)))), chi2
+
+    def ml_model_error(self, r: np.ndarray) -> float:
+        """The model-error term f maximising the likelihood of residuals ``r``."""
+        lo, hi = math.log(MODEL_ERROR_MIN), math.log(10.0)
+        nll = lambda log_f: self.terms(r, math.exp(log_f))[0]  # noqa: E731
+        res = optimize.minimize_scalar(nll, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+        return math.exp(res.x) if res.fun < nll(lo) else MODEL_ERROR_MIN
+
+
 def _nll_terms(curve: AllanCurve, avar_pred: np.ndarray, model_error: float) -> tuple[float, float]:
     """``(nll, chi2)`` of a predicted Allan variance against a one-axis curve (see :class:`ModelFit`)."""
-    offset, s = _log_law(curve.edf)
-    r = np.log(curve.adev**2) - np.log(avar_pred) - offset
-    v = s**2 + model_error**2
-    chi2 = float(np.sum(r**2 / v))
-    return chi2 + float(np.sum(np.log(v))), chi2
+    like = _LogLikelihood(curve)
+    return like.terms(like.y - np.log(avar_pred), model_error)
 
 
 def _initial_guesses(model: str, curve: AllanCurve) -> list[np.ndarray]:
@@ -345,32 +449,18 @@ def _bounds(model: str, curve: AllanCurve) -> tuple[np.ndarray, np.ndarray]:
     return np.array(lo), np.array(hi)
 
 
-# the model-error term f (std of ln AVAR) lives in [MODEL_ERROR_MIN, 10]; at the lower end it is negligible
-# against every statistical error (s_i >= ~1.6e-3 for a million samples), so "f = 0" is reachable
-MODEL_ERROR_MIN = 1e-5
-FIT_MODEL_ERROR_STARTS = (MODEL_ERROR_MIN,)
-
-
-def _ml_model_error(r: np.ndarray, s: np.ndarray) -> float:
-    """The model-error term f maximising the likelihood of residuals ``r`` with statistical stds ``s``."""
-    def nll(log_f):
-        v = s**2 + math.exp(2.0 * log_f)
-        return float(np.sum(r**2 / v + np.log(v)))
-
-    lo, hi = math.log(MODEL_ERROR_MIN), math.log(10.0)
-    res = optimize.minimize_scalar(nll, bounds=(lo, hi), method="bounded", options={"xatol": 1e-5})
-    return math.exp(res.x) if res.fun < nll(lo) else MODEL_ERROR_MIN
 
 
 def fit_noise_model(curve: AllanCurve, model: str) -> ModelFit:
-    """Fit ``model`` (a key of MODELS) to a one-axis Allan curve by weighted least squares in log AVAR.
+    """Fit ``model`` (a key of MODELS) to a one-axis Allan curve by generalised least squares in log AVAR.
 
-    The weights are ``1 / (s_i^2 + f^2)``: the statistical error of each point plus a model-error term ``f``
-    fitted by maximum likelihood with the parameters (see :class:`ModelFit`).  On data the model describes,
-    ``f`` goes to ~0 and the fit is plain chi-square; on real data ``f`` absorbs what no candidate model
-    describes (e.g. a sensor's internal filter at the shortest taus), which would otherwise dominate the fit
-    through the tiny statistical errors there.  Parameters are fitted as logarithms (positive, scale-free)
-    from several starting points; the best likelihood wins.
+    The covariance of the points is ``S R S + f^2 I`` (see :class:`ModelFit`): the statistical errors with the
+    correlation of neighbouring taus, plus a model-error term ``f`` fitted by maximum likelihood with the
+    parameters.  On data the model describes, ``f`` goes to ~0 and the fit is a plain (correlated) chi-square;
+    on real data ``f`` absorbs what no candidate model describes (e.g. a sensor's internal filter at the
+    shortest taus), which would otherwise dominate the fit through the tiny statistical errors there.
+    Parameters are fitted as logarithms (positive, scale-free) from several starting points; the best
+    likelihood wins.
 
     Returns
     -------
@@ -379,32 +469,27 @@ def fit_noise_model(curve: AllanCurve, model: str) -> ModelFit:
     if curve.adev.ndim != 1:
         raise ValueError("fit_noise_model takes a one-axis curve (AllanCurve.axis(i))")
     spec = MODELS[model]
-    offset, s = _log_law(curve.edf)
-    y = np.log(curve.adev**2) - offset
-    t = curve.taus_s
+    like = _LogLikelihood(curve)
+    y, t = like.y, like.taus_s
     lo, hi = _bounds(model, curve)
 
     def model_log(theta):
         return np.log(spec.avar(t, *np.exp(theta)))
 
-    def nll(theta, f):
-        v = s**2 + f**2
-        return float(np.sum((y - model_log(theta))**2 / v + np.log(v)))
-
-    # maximum likelihood by alternation: weighted least squares for the parameters at fixed f, then the 1-D
-    # maximum-likelihood f for those residuals; each step lowers nll, so it converges (to a local optimum)
+    # maximum likelihood by alternation: generalised least squares for the parameters at fixed f, then the
+    # 1-D maximum-likelihood f for those residuals; no step raises nll, so it converges (to a local optimum)
     best = (math.inf, None, None)
     for p0 in _initial_guesses(model, curve):
         for f in FIT_MODEL_ERROR_STARTS:
             theta = np.clip(np.log(p0), lo + 1e-9, hi - 1e-9)
             prev = math.inf
             for _ in range(100):
-                w = 1.0 / np.sqrt(s**2 + f**2)
-                theta = optimize.least_squares(lambda th: (y - model_log(th)) * w, theta, bounds=(lo, hi),
-                                               method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10,
-                                               max_nfev=1000).x
-                f = _ml_model_error(y - model_log(theta), s)
-                cur = nll(theta, f)
+                chol = like.cholesky(f)
+                theta = optimize.least_squares(
+                    lambda th: linalg.solve_triangular(chol, y - model_log(th), lower=True), theta,
+                    bounds=(lo, hi), method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=1000).x
+                f = like.ml_model_error(y - model_log(theta))
+                cur = like.terms(y - model_log(theta), f)[0]
                 if prev - cur < 1e-7:
                     break
                 prev = cur
@@ -412,32 +497,29 @@ def fit_noise_model(curve: AllanCurve, model: str) -> ModelFit:
                 best = (cur, theta, f)
     _, theta, f = best
     p = np.exp(theta)
-    v = s**2 + f**2
     # Jacobian of ln AVAR_model with respect to the log parameters, by central differences
     jac = np.empty((len(t), len(theta)))
     for j in range(len(theta)):
         h = np.zeros_like(theta)
         h[j] = 1e-6
         jac[:, j] = (model_log(theta + h) - model_log(theta - h)) / 2e-6
-    cov = np.linalg.pinv(jac.T @ (jac / v[:, None]))
+    wj = linalg.solve_triangular(like.cholesky(f), jac, lower=True)
+    cov = np.linalg.pinv(wj.T @ wj)
     std = p * np.sqrt(np.clip(np.diag(cov), 0.0, None))
     # a parameter pinned at a bound has no Gaussian error (the model then reduces to a smaller one, which
     # the BIC prefers anyway): its std is NaN (null in JSON)
     std[(theta - lo < 1e-3) | (hi - theta < 1e-3)] = np.nan
-    r = y - model_log(theta)
-    chi2 = float(np.sum(r**2 / v))
+    nll, chi2 = like.terms(y - model_log(theta), f)
     return ModelFit(model, {k: float(x) for k, x in zip(spec.params, p)},
-                    {k: float(x) for k, x in zip(spec.params, std)}, cov, f, chi2 + float(np.sum(np.log(v))),
-                    chi2, len(t))
+                    {k: float(x) for k, x in zip(spec.params, std)}, cov, f, nll, chi2, len(t))
 
 
 def fixed_white(curve: AllanCurve, density: float) -> ModelFit:
     """The white-noise model with a given (declared) density: only the model-error term is fitted."""
-    avar = avar_white(curve.taus_s, density)
-    fs = np.geomspace(MODEL_ERROR_MIN, 10.0, 200)
-    nll = [_nll_terms(curve, avar, f)[0] for f in fs]
-    f = float(fs[int(np.argmin(nll))])
-    nll_best, chi2 = _nll_terms(curve, avar, f)
+    like = _LogLikelihood(curve)
+    r = like.y - np.log(avar_white(curve.taus_s, density))
+    f = like.ml_model_error(r)
+    nll_best, chi2 = like.terms(r, f)
     return ModelFit("white", {"white_density": float(density)}, {"white_density": 0.0}, np.zeros((1, 1)), f,
                     nll_best, chi2, len(curve.taus_s), fixed=True)
 

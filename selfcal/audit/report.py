@@ -61,7 +61,7 @@ td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
 .pbad{background:#f6c9c4}.pwarn{background:#fbe7c0}
 .acc{background:#cdebd0;font-weight:600}.sig{background:#fbe7c0}.inmodel{color:#999;background:#f5f5f5}
 img{max-width:100%;height:auto;border:1px solid #e4e4e4;margin:6px 0}
-td.est{white-space:nowrap}td.hist{white-space:nowrap}
+.erow{white-space:nowrap}td.ev{min-width:10em}td.gain{text-align:right;font-variant-numeric:tabular-nums}td.hist{white-space:nowrap}
 figure{margin:8px 0 18px}figcaption{font-size:13px;color:#444}
 """
 
@@ -163,7 +163,8 @@ def _sci(x: float, digits: int) -> str:
     mantissa = x / 10.0**exponent
     if round(abs(mantissa), digits - 1) >= 10.0:
         mantissa, exponent = mantissa / 10.0, exponent + 1
-    return f"{_minus(f'{mantissa:.{digits - 1}f}')}&times;10<sup>{_minus(str(exponent))}</sup>"
+    text = f"{mantissa:.{digits - 1}f}".rstrip("0").rstrip(".")
+    return f"{_minus(text)}&times;10<sup>{_minus(str(exponent))}</sup>"
 
 
 def _minus(s: str) -> str:
@@ -230,10 +231,10 @@ def format_estimate(effect: str, estimate: dict, std: dict | None) -> str:
     std = std or {}
     lines = []
     for key, value in estimate.items():
-        if key == "unit":
+        if key in ("unit", "target"):  # the unit is shown with the numbers, the target has its own column
             continue
         if isinstance(value, str):
-            lines.append(f"<span class=\"small\">{html.escape(key)}: {html.escape(value)}</span>")
+            lines.append(f"<div class=\"small\">{html.escape(key)}: {html.escape(value)}</div>")
             continue
         values = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
         sigmas = std.get(key)
@@ -255,14 +256,17 @@ def format_estimate(effect: str, estimate: dict, std: dict | None) -> str:
         if values.size == 1:
             body = cells[0]
         elif values.size == 9:
-            rows = [" ".join(f"<span class=\"el\">{c}</span>" for c in cells[3 * r:3 * r + 3]) for r in range(3)]
-            body = "<br>".join(rows)
+            body = "".join("<div class=\"erow\">" + " ".join(f"<span class=\"el\">{c}</span>"
+                                                            for c in cells[3 * r:3 * r + 3]) + "</div>"
+                           for r in range(3))
         else:
             labels = _element_labels(key, values.size, effect)
             items = [f"<span class=\"el\"><i>{html.escape(lab)}</i>{c}</span>" for lab, c in zip(labels, cells)]
-            body = "<br>".join(" ".join(items[i:i + 3]) for i in range(0, len(items), 3))
-        lines.append(f"{head}<br>{body}")
-    return "<br>".join(lines) if lines else "&ndash;"
+            body = "".join(f"<div class=\"erow\">{' '.join(items[i:i + 3])}</div>" for i in range(0, len(items), 3))
+        if values.size == 1:
+            body = f"<div class=\"erow\">{body}</div>"
+        lines.append(f"<div>{head}{body}</div>")
+    return "".join(lines) if lines else "&ndash;"
 
 
 # --- model names --------------------------------------------------------------------------------------------------
@@ -366,9 +370,8 @@ def _ambiguity_box(finding: dict) -> str:
     return (f"<div class=\"ambbox\">&#9888; <b>Ambiguous:</b> the data cannot tell "
             f"<b>{html.escape(finding['effect'])}</b> ({html.escape(finding.get('target', ''))}) apart from "
             f"{_ambiguity_text(finding)}. Both explain the residual about equally well (BIC within 6) and the rival "
-            "loses its evidence once the accepted effect is in the model. Treat the cause as undetermined: a "
-            "recording that varies the two independently (e.g. temperature without the passage of time) decides."
-            "</div>")
+            "loses its evidence once the accepted effect is in the model. Treat the cause as undetermined: only a "
+            "recording in which the two causes vary independently can decide.</div>")
 
 
 def _signed(x) -> str:
@@ -384,11 +387,12 @@ def _findings_table(result: AuditResult) -> str:
     for i, f in enumerate(result.findings, 1):
         ev, gain = f.get("evidence", {}), f.get("gain", {})
         unit = unit_html(units.get(f.get("target", ""), ""))
-        evidence = (f"{html.escape(str(ev.get('diagnostic', '')))}<br>F = {num(ev.get('statistic'), 4)}, "
-                    f"p = {pval(ev.get('p_value'))}")
-        gain_html = (f"RMS {num(gain.get('rms_before'), 3)} &rarr; {num(gain.get('rms_after'), 3)} {unit}<br>"
-                     f"&Delta;BIC {num(gain.get('delta_bic'), 4)}<br>"
-                     f"held-out {num(gain.get('heldout_rms_before'), 3)} &rarr; {num(gain.get('heldout_rms_after'), 3)}")
+        evidence = (f"F = {num(ev.get('statistic'), 4)}<br>p = {pval(ev.get('p_value'))}"
+                    f"<div class=\"small\">{html.escape(str(ev.get('diagnostic', '')))}</div>")
+        gain_html = "".join(f"<div class=\"erow\">{line}</div>" for line in (
+            f"RMS {num(gain.get('rms_before'), 3)} &rarr; {num(gain.get('rms_after'), 3)} {unit}",
+            f"&Delta;BIC {num(gain.get('delta_bic'), 4)}",
+            f"held-out {num(gain.get('heldout_rms_before'), 3)} &rarr; {num(gain.get('heldout_rms_after'), 3)}"))
         if f.get("ambiguous_with"):
             amb = f"<td class=\"amb\">&#9888; <b>cannot be told apart from</b> {_ambiguity_text(f)}</td>"
             effect = f"&#9888; <b>{html.escape(f['effect'])}</b>"
@@ -398,7 +402,7 @@ def _findings_table(result: AuditResult) -> str:
         rows.append(f"<tr><td class=\"num\">{i}</td><td>{effect}{meaning}</td><td>{html.escape(str(f.get('sensor', '')))}"
                     f"</td><td>{html.escape(str(f.get('target', '')))}</td>"
                     f"<td class=\"est\">{format_estimate(f['effect'], f.get('estimate', {}), f.get('std'))}</td>"
-                    f"<td>{evidence}</td><td class=\"num\">{gain_html}</td>{amb}</tr>")
+                    f"<td class=\"ev\">{evidence}</td><td class=\"gain\">{gain_html}</td>{amb}</tr>")
     head = ("<tr><th>#</th><th>effect</th><th>sensor</th><th>target</th><th>estimate &plusmn; 1&sigma;</th>"
             "<th>evidence</th><th>gain (before &rarr; after)</th><th>ambiguous with</th></tr>")
     return ("<h2>Findings, in the order accepted</h2>\n"
@@ -427,45 +431,127 @@ def plot_coordinates(coordinate: str, family: ResidualFamily) -> list[str]:
     return ["time_s"] if "time_s" in family.coordinates else list(family.coordinates)[:1]
 
 
-def finding_figure(before: ResidualFamily, after: ResidualFamily, coordinate: str, effect: str,
-                   before_name: str = "before", after_name: str = "after") -> Figure:
+def _tex_num(x: float, digits: int = 3) -> str:
+    """A number for a matplotlib label: ``1.23 \\times 10^{-5}`` in mathtext when it needs an exponent."""
+    if not math.isfinite(x) or x == 0.0 or 1e-3 <= abs(x) < 1e4:
+        return f"{x:.{digits}g}"
+    exponent = int(math.floor(math.log10(abs(x))))
+    mantissa = f"{x / 10.0**exponent:.{digits - 1}f}".rstrip("0").rstrip(".")
+    return f"${mantissa}\\times10^{{{exponent}}}$"
+
+
+def _scatter_components(ax, x, y, names):
+    for j in range(y.shape[1]):
+        ax.scatter(x, y[:, j], s=16, alpha=0.8, color=COMPONENT_COLOURS[j % len(COMPONENT_COLOURS)],
+                   label=names[j] if j < len(names) else str(j), edgecolors="none")
+    ax.axhline(0.0, color="#888", lw=0.8)
+    ax.grid(True, alpha=0.3)
+
+
+def _residual_scale(*families: ResidualFamily) -> tuple[int, float]:
+    """Engineering exponent of the residuals and the half-range that holds all of them."""
+    stacked = np.concatenate([np.ravel(f.physical) for f in families])
+    stacked = stacked[np.isfinite(stacked)]
+    if not stacked.size:
+        return 0, 1.0
+    exponent = _engineering_exponent(stacked)
+    top = float(np.max(np.abs(stacked))) * 10.0**-exponent * 1.12
+    return exponent, top or 1.0
+
+
+def _residual_label(fam: ResidualFamily, exponent: int, title: str = "") -> str:
+    scale = f"$10^{{{exponent}}}$ " if exponent else ""
+    return f"{title}\nresidual [{scale}{unit_tex(fam.unit)}]" if title else f"residual [{scale}{unit_tex(fam.unit)}]"
+
+
+def finding_figure(before: ResidualFamily, after: ResidualFamily, coordinate: str, effect: str) -> Figure:
     """Residuals of one family against the implicated coordinates: before (top row) and after (bottom row).
 
-    One column per coordinate, one colour per residual component, one y scale for all panels.
+    One column per coordinate, one colour per residual component, one y scale for all panels, so the gain is
+    what disappears from the top row to the bottom one.
     """
     coords = plot_coordinates(coordinate, before)
     n_cols = max(len(coords), 1)
-    fig = Figure(figsize=(3.6 * n_cols + 0.9, 5.4), layout="constrained")
-    axes = fig.subplots(2, n_cols, sharey=True, squeeze=False)
-    stacked = np.concatenate([np.ravel(before.physical), np.ravel(after.physical)])
-    stacked = stacked[np.isfinite(stacked)]
-    exponent = _engineering_exponent(stacked) if stacked.size else 0
-    factor = 10.0**-exponent
     names = component_names(before)
-    for row, (fam, title) in enumerate(((before, before_name), (after, after_name))):
+    several = np.asarray(before.physical).reshape(len(before.physical), -1).shape[1] > 1
+    fig = Figure(figsize=(max(3.5 * n_cols, 6.0) + (1.6 if several else 0.9), 5.4), layout="constrained")
+    axes = fig.subplots(2, n_cols, sharey=True, squeeze=False)
+    exponent, top = _residual_scale(before, after)
+    factor = 10.0**-exponent
+    for row, (fam, title) in enumerate(((before, "before"), (after, "after"))):
         phys = np.asarray(fam.physical, dtype=float).reshape(len(fam.physical), -1) * factor
         for col, cname in enumerate(coords):
             ax = axes[row, col]
             x = np.asarray(fam.coordinates.get(cname, np.full(len(phys), np.nan)), dtype=float)
-            for j in range(phys.shape[1]):
-                label = names[j] if j < len(names) else str(j)
-                ax.scatter(x, phys[:, j], s=16, alpha=0.8, color=COMPONENT_COLOURS[j % len(COMPONENT_COLOURS)],
-                           label=label, edgecolors="none")
-            ax.axhline(0.0, color="#888", lw=0.8)
-            ax.grid(True, alpha=0.3)
+            _scatter_components(ax, x, phys, names)
             if row == 1:
                 ax.set_xlabel(COORDINATE_LABELS.get(cname, cname))
             if col == 0:
-                scale = f"$10^{{{exponent}}}$ " if exponent else ""
-                ax.set_ylabel(f"{title}\nresidual [{scale}{unit_tex(fam.unit)}]")
-            ax.text(0.02, 0.96, f"RMS {fam.rms:.3g} {unit_tex(fam.unit)}", transform=ax.transAxes, va="top",
+                ax.set_ylabel(_residual_label(fam, exponent, title))
+            ax.text(0.02, 0.96, f"RMS {_tex_num(fam.rms)} {unit_tex(fam.unit)}", transform=ax.transAxes, va="top",
                     fontsize=9, bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none", "pad": 1.5})
-        if row == 0 and phys.shape[1] > 1:
-            axes[0, -1].legend(loc="upper right", fontsize=8, title="component", title_fontsize=8, markerscale=1.2)
-    if stacked.size:
-        top = float(np.max(np.abs(stacked))) * factor * 1.12 or 1.0
-        axes[0, 0].set_ylim(-top, top)
+    if several:
+        fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside right upper", fontsize=9,
+                   title="component", title_fontsize=9, markerscale=1.3)
+    axes[0, 0].set_ylim(-top, top)
     fig.suptitle(f"{before.label} residual vs {coordinate}: before and after {effect}", fontsize=11)
+    return fig
+
+
+def rival_coordinate(effect: str, family: ResidualFamily) -> str | None:
+    """The coordinate a rival effect's signature depends on, from its name (the JSON keeps only the name)."""
+    if effect == "bias_drift":
+        return "time"
+    if effect.startswith("channel:"):
+        return effect.split(":", 1)[1]
+    if effect == "bias_temperature":
+        return next((c for c in family.coordinates if c.lower().startswith("temp")), None)
+    if effect in ("accel_scale", "accel_misalignment", "gyro_g_sensitivity"):
+        return "orientation"
+    if effect in ("gyro_scale", "gyro_misalignment"):
+        return "rotation of each move"
+    return None
+
+
+def ambiguity_figure(before: ResidualFamily, coordinate: str, rival: str, rival_coord: str) -> Figure | None:
+    """Why two causes cannot be told apart: the residual against both causes' coordinates, and (for two scalar
+    coordinates) one coordinate against the other with their correlation coefficient.  None if the two
+    coordinates are the same."""
+    mine, theirs = plot_coordinates(coordinate, before), plot_coordinates(rival_coord, before)
+    if mine == theirs:
+        return None
+    scalar = len(mine) == 1 and len(theirs) == 1
+    panels = mine + theirs
+    n_cols = len(panels) + (1 if scalar else 0)
+    names = component_names(before)
+    several = np.asarray(before.physical).reshape(len(before.physical), -1).shape[1] > 1
+    fig = Figure(figsize=(max(3.3 * n_cols, 6.0) + (1.6 if several else 0.9), 3.1), layout="constrained")
+    axes = fig.subplots(1, n_cols, squeeze=False)[0]
+    exponent, top = _residual_scale(before)
+    phys = np.asarray(before.physical, dtype=float).reshape(len(before.physical), -1) * 10.0**-exponent
+    for ax, cname in zip(axes, panels):
+        _scatter_components(ax, np.asarray(before.coordinates[cname], dtype=float), phys, names)
+        ax.set_xlabel(COORDINATE_LABELS.get(cname, cname))
+        ax.set_ylim(-top, top)
+    axes[0].set_ylabel(_residual_label(before, exponent))
+    for ax in axes[1:len(panels)]:
+        ax.sharey(axes[0])
+    if scalar:
+        a = np.asarray(before.coordinates[mine[0]], dtype=float)
+        b = np.asarray(before.coordinates[theirs[0]], dtype=float)
+        ok = np.isfinite(a) & np.isfinite(b)
+        r = float(np.corrcoef(a[ok], b[ok])[0, 1]) if ok.sum() > 2 and np.ptp(a[ok]) and np.ptp(b[ok]) else np.nan
+        ax = axes[-1]
+        ax.scatter(a, b, s=16, color="#555", edgecolors="none")
+        ax.set_xlabel(COORDINATE_LABELS.get(mine[0], mine[0]))
+        ax.set_ylabel(COORDINATE_LABELS.get(theirs[0], theirs[0]))
+        ax.set_title(f"the two coordinates: r = {r:.4f}", fontsize=10)
+        ax.grid(True, alpha=0.3)
+    if several:
+        fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right upper", fontsize=9,
+                   title="component", title_fontsize=9, markerscale=1.3)
+    fig.suptitle(f"{before.label} residual before either effect, against {coordinate} and against {rival_coord} "
+                 f"({rival})", fontsize=11)
     return fig
 
 
@@ -503,6 +589,8 @@ def _finding_sections(result: AuditResult) -> str:
         out.append("<p>Accepted because " + "; ".join(because) + ".</p>")
         if finding.get("ambiguous_with"):
             out.append(_ambiguity_box(finding))
+            if fam_before is not None:
+                out += _ambiguity_figures(finding, cand, fam_before)
         if fam_before is not None and fam_after is not None:
             fig = finding_figure(fam_before, fam_after, cand.coordinate, finding["effect"])
             uri = figure_to_data_uri(fig)
@@ -515,6 +603,25 @@ def _finding_sections(result: AuditResult) -> str:
         else:
             out.append("<p class=\"small\">(No residual family to plot for this finding.)</p>")
     return "\n".join(out)
+
+
+def _ambiguity_figures(finding: dict, cand: Candidate, before: ResidualFamily) -> list[str]:
+    out = []
+    for rival in finding.get("ambiguous_with", []):
+        effect = str(rival.get("effect", ""))
+        coord = rival_coordinate(effect, before)
+        if coord is None or (rival.get("target") and rival["target"] != before.label):
+            continue
+        fig = ambiguity_figure(before, cand.coordinate, effect, coord)
+        if fig is None:
+            continue
+        out.append(f"<figure><img src=\"{figure_to_data_uri(fig)}\" alt=\"{html.escape(finding['effect'])} "
+                   f"against {html.escape(effect)}\"><figcaption>Why the data cannot decide: the residual the "
+                   f"earlier model left, against the coordinate of {html.escape(finding['effect'])} "
+                   f"({html.escape(cand.coordinate)}) and of {html.escape(effect)} ({html.escape(coord)}). When the "
+                   "two coordinates move together over the recording, a dependence on one is a dependence on the "
+                   "other.</figcaption></figure>")
+    return out
 
 
 def _model_name(result: AuditResult, i: int) -> str:
@@ -629,9 +736,15 @@ def dict_table(rows: list[dict]) -> str:
     for r in rows:
         columns += [k for k in r if k not in columns]
     head = "".join(f"<th>{html.escape(str(c).replace('_', ' '))}</th>" for c in columns)
-    body = "".join("<tr>" + "".join(
-        f"<td class=\"num\">{_cell(r.get(c))}</td>" if _finite(r.get(c)) else f"<td>{_cell(r.get(c))}</td>"
-        for c in columns) + "</tr>" for r in rows)
+
+    def cell(column, value):
+        if _finite(value):
+            return f"<td class=\"num\">{_cell(value)}</td>"
+        if column == "unit" and isinstance(value, str):
+            return f"<td>{unit_html(value)}</td>"
+        return f"<td>{_cell(value)}</td>"
+
+    body = "".join("<tr>" + "".join(cell(c, r.get(c)) for c in columns) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 

@@ -159,11 +159,11 @@ def relative_rotation_and_jacobians(w_raw, f_S, dt_s, gyro: GyroIntrinsics, chan
     offset = sum((np.outer(dev, slope) for slope, dev in channels.values()), np.zeros((len(w_raw), 3)))
     w, d_bias, d_M, d_A = gyro_rates_and_jacobians(w_raw, f_S, gyro, offset)
     delta_R, J = so3.integrate_rates(w, dt_s, with_jacobians=True)
-    out = {"bias": np.einsum("nij,njk->ik", J, d_bias), "M": np.einsum("nij,njk->ik", J, d_M),
-           "A": np.einsum("nij,njk->ik", J, d_A)}
-    J_bias_per_sample = J @ (-gyro.M)  # d(delta_R)/d(bias at sample i)
-    for name, (_, dev) in channels.items():
-        out[name] = np.einsum("nij,n->ij", J_bias_per_sample, dev)
+    J_flat = J.transpose(1, 0, 2).reshape(3, -1)  # sum_i J_i D_i as one matmul: [J_1 ... J_n] [D_1; ...; D_n]
+    out = {name: J_flat @ np.ascontiguousarray(D).reshape(-1, D.shape[-1])
+           for name, D in (("bias", d_bias), ("M", d_M), ("A", d_A))}
+    for name, (_, dev) in channels.items():  # per-sample bias slope x deviation: sum_i J_i (-M) dev_i
+        out[name] = np.tensordot(dev, J, axes=(0, 0)) @ (-gyro.M)
     return delta_R, out
 
 

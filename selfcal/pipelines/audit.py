@@ -26,6 +26,12 @@ class AuditRun:
             out["measured_vs_simulated"] = self.simulation
         return out
 
+    def report_extras(self, recording: str) -> dict:
+        extras = {"recording": recording}
+        if self.simulation:
+            extras["simulation"] = self.simulation
+        return extras
+
 
 def audit_recording(recording: Recording, system: str, base: str | None = None, sensors: list[str] | None = None,
                     progress=None, simulate_seed: int = 1) -> AuditRun:
