@@ -21,9 +21,16 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{message} (see: {self.prog} --help)")
 
 
+def _output(path) -> Path:
+    """An output path whose folder exists (created if needed: `--out results/cal.yaml` just works)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def _write_yaml(path, data: dict) -> None:
     from selfcal.io.atomic import atomic_write_text
-    atomic_write_text(Path(path), yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
+    atomic_write_text(_output(path), yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
     log.info("wrote %s", path)
 
 
@@ -54,7 +61,7 @@ def _cmd_calibrate_imu_pair(args) -> None:
     if imu0 is None or imu1 is None:
         raise UsageError(f"{args.recording}: needs two IMU sensor folders, found {names}")
     cal = calibrate_imu_pair(rec, imu0, imu1, lever_arm=args.lever_arm, time_offset=args.time_offset,
-                             lowpass_hz=args.lowpass_hz or None)
+                             lowpass_hz=args.lowpass_hz or None, gains=args.gains)
     print(cal.summary())
     if args.out:
         _write_yaml(args.out, cal.to_dict())
@@ -78,11 +85,11 @@ def _cmd_audit(args) -> None:
     if not run.result.findings:
         print("no finding: the data give no significant evidence against the base model")
     if args.json:
-        atomic_write_text(Path(args.json), json.dumps(run.to_json(), indent=1, default=_plain) + "\n")
+        atomic_write_text(_output(args.json), json.dumps(run.to_json(), indent=1, default=_plain) + "\n")
         log.info("wrote %s", args.json)
     if args.report:
         from selfcal.audit.report import write_report
-        write_report(run.result, Path(args.report), run.report_extras(str(args.recording)))
+        write_report(run.result, _output(args.report), run.report_extras(str(args.recording)))
         print(f"report: {args.report}")
 
 
@@ -128,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="estimate the lever arm (default: where the data determine it)")
     p.add_argument("--time-offset", action=argparse.BooleanOptionalAction, default=None,
                    help="estimate the clock offset (default: where the data determine it)")
+    p.add_argument("--gains", action=argparse.BooleanOptionalAction, default=False,
+                   help="also estimate imu1's scale and non-orthogonality relative to imu0 (for IMUs whose "
+                        "intrinsics were not calibrated first)")
     p.add_argument("--lowpass-hz", type=float, default=5.0,
                    help="zero-phase low-pass applied to both IMUs before the dynamic pairs, Hz (0: none)")
     p.add_argument("--out", help="calibration YAML to write")

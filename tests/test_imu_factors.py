@@ -177,3 +177,28 @@ def test_partial_blocks_and_channel_slopes(seed):
     assert_factor_jacobians(factor, {1: gtsam.Unit3(random_unit(rng)), 2: gtsam.Unit3(random_unit(rng)),
                                      3: 0.01 * rng.normal(size=3), 4: 0.02 * rng.normal(size=6),
                                      5: 1e-3 * rng.normal(size=3)}, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_pair_factors_with_relative_gain(seed):
+    """imu1 with its own scale and non-orthogonality (symmetric gain): exact zero and Jacobians."""
+    rng = np.random.default_rng(seed)
+    R = _random_rot3(rng)
+    s6 = 0.01 * rng.normal(size=6)
+    G = fimu.symmetric_gain(s6)
+    np.testing.assert_allclose(G, G.T)
+    v1 = G_GRAVITY * random_unit(rng)
+    v0 = R.matrix() @ G @ v1
+    factor = fimu.static_pair_factor(unit_noise(3), v0, v1, 1, gain_key=2)
+    assert np.max(np.abs(factor.unwhitenedError(_values({1: R, 2: s6})))) < 1e-12
+    assert_factor_jacobians(factor, {1: _random_rot3(rng), 2: 0.05 * rng.normal(size=6)})
+    t1 = np.arange(0, 2.0, 0.01)
+    x1 = np.cumsum(rng.normal(size=(len(t1), 3)), axis=0)
+    t0 = np.sort(rng.uniform(0.2, 1.8, size=30))
+    factor = fimu.dynamic_pair_factor(unit_noise(90), t0, rng.normal(size=(30, 3)), fimu.Signal(t1, x1), 1, 2,
+                                      gain_key=3)
+    assert_factor_jacobians(factor, {1: _random_rot3(rng), 2: np.array([0.0043]), 3: 0.05 * rng.normal(size=6)},
+                            delta=1e-7, atol=1e-4)
+
+
+G_GRAVITY = 9.81

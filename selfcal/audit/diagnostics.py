@@ -21,6 +21,7 @@ References
 Ljung, G. M. & Box, G. E. P. (1978). On a measure of lack of fit in time series models. Biometrika 65(2).
 D'Agostino, R. & Pearson, E. S. (1973). Tests for departure from normality. Biometrika 60(3).
 Zechmeister, M. & Kürster, M. (2009). The generalised Lomb-Scargle periodogram. A&A 496, 577-584.
+Baluev, R. V. (2008). Assessing the statistical significance of periodogram peaks. MNRAS 385, 1279-1285.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ import warnings
 
 import numpy as np
 from scipy import signal, stats
+from scipy.special import gammaln
 
 from selfcal.audit.engine import ResidualFamily
 
@@ -206,9 +208,12 @@ def dominant_period(t, x, min_period: float | None = None, max_period: float | N
 
     Generalised (floating-mean) Lomb-Scargle periodogram, normalised so that the power ``p`` at a frequency is
     the fraction of the variance a sinusoid of that frequency explains (Zechmeister & Kürster 2009).  For
-    Gaussian white noise, ``Prob(p > p0) = (1 - p0)^((n - 3) / 2)`` at one frequency; over the ``M ~ T df``
-    independent frequencies searched (T the time span, df the band) the false-alarm probability is
-    ``FAP = 1 - (1 - Prob)^M``: small means the peak is not a chance fluctuation of white noise.
+    Gaussian white noise, ``Prob(p > p0) = (1 - p0)^((n - 3) / 2)`` at one frequency; searching the band up to
+    ``f_max`` multiplies the chances, which Baluev's (2008) bound accounts for:
+    ``FAP = 1 - (1 - Prob) exp(-tau)``, ``tau ~ f_max T_eff (1 - p0)^((n - 4) / 2) sqrt(p0)`` (up to a
+    Gamma-function factor), ``T_eff = sqrt(4 pi var(t))``.  A small FAP means the peak is not a chance
+    fluctuation of white noise; on white noise the FAP is close to uniformly distributed (it is the
+    probability it claims to be).
 
     Parameters
     ----------
@@ -246,11 +251,14 @@ def dominant_period(t, x, min_period: float | None = None, max_period: float | N
     power = signal.lombscargle(t, x - x.mean(), 2.0 * np.pi * freqs, normalize=True, floating_mean=True)
     best = int(np.argmax(power))
     p0 = float(np.clip(power[best], 0.0, 1.0))
-    single = (1.0 - p0) ** ((n - 3) / 2.0)
-    m_independent = max(1.0, span * (f_hi - f_lo))
-    # 1 - (1 - s)^M without cancellation for tiny s
-    fap = float(-np.expm1(m_independent * np.log1p(-min(single, 1.0 - 1e-16))))
-    return float(1.0 / freqs[best]), min(fap, 1.0)
+    # Baluev (2008): FAP ~ 1 - (1 - Prob) exp(-tau), tau the expected number of up-crossings of p0 over the band
+    n_null, n_signal = n - 1, n - 3
+    single_cdf = 1.0 - (1.0 - p0) ** (0.5 * n_signal)
+    effective_span = np.sqrt(4.0 * np.pi * np.var(t))
+    gamma = np.sqrt(2.0 / n_null) * np.exp(gammaln(0.5 * n_null) - gammaln(0.5 * (n_null - 1)))
+    tau = gamma * f_hi * effective_span * (1.0 - p0) ** (0.5 * (n_signal - 1)) * np.sqrt(0.5 * n_null * p0)
+    fap = 1.0 - single_cdf * np.exp(-tau)
+    return float(1.0 / freqs[best]), float(np.clip(fap, 0.0, 1.0))
 
 
 def cross_correlation_lag(t, a, b, max_lag: float | None = None) -> float:

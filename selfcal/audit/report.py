@@ -399,11 +399,13 @@ def _findings_table(result: AuditResult) -> str:
         else:
             amb, effect = "<td>&ndash;</td>", f"<b>{html.escape(f['effect'])}</b>"
         meaning = f"<br><span class=\"small\">{html.escape(f['meaning'])}</span>" if f.get("meaning") else ""
-        rows.append(f"<tr><td class=\"num\">{i}</td><td>{effect}{meaning}</td><td>{html.escape(str(f.get('sensor', '')))}"
-                    f"</td><td>{html.escape(str(f.get('target', '')))}</td>"
+        sensor, target = str(f.get("sensor", "")), str(f.get("target", ""))
+        quantity = target[len(sensor) + 1:] if target.startswith(f"{sensor}/") else target
+        rows.append(f"<tr><td class=\"num\">{i}</td><td>{effect}{meaning}</td>"
+                    f"<td title=\"{html.escape(target)}\">{html.escape(sensor)}<br>{html.escape(quantity)}</td>"
                     f"<td class=\"est\">{format_estimate(f['effect'], f.get('estimate', {}), f.get('std'))}</td>"
                     f"<td class=\"ev\">{evidence}</td><td class=\"gain\">{gain_html}</td>{amb}</tr>")
-    head = ("<tr><th>#</th><th>effect</th><th>sensor</th><th>target</th><th>estimate &plusmn; 1&sigma;</th>"
+    head = ("<tr><th>#</th><th>effect</th><th>sensor<br>target</th><th>estimate &plusmn; 1&sigma;</th>"
             "<th>evidence</th><th>gain (before &rarr; after)</th><th>ambiguous with</th></tr>")
     return ("<h2>Findings, in the order accepted</h2>\n"
             "<p class=\"small\">Each finding was significant against the Bonferroni threshold of its step, lowered "

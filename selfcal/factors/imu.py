@@ -173,27 +173,42 @@ def gyro_motion_factor(noise, w_raw, f_S, dt_s, up_key_start, up_key_end, keys: 
 
 # --- two IMUs -----------------------------------------------------------------------------------------------
 
-def static_pair_factor(noise, v0, v1, rotation_key, offset_key=None) -> gtsam.CustomFactor:
-    """Same static vector seen by both IMUs (the patent's residual): ``e = v0 - R v1 - d``.
+SYMMETRIC_INDEX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def symmetric_gain(s6) -> np.ndarray:
+    """``I + S`` with S symmetric from its 6 entries (00, 01, 02, 11, 12, 22): the second sensor's scale and
+    non-orthogonality relative to the first.  Symmetric, so no rotation hides in it (polar decomposition)."""
+    G = np.eye(3)
+    for value, (i, j) in zip(s6, SYMMETRIC_INDEX):
+        G[i, j] += value
+        if i != j:
+            G[j, i] += value
+    return G
+
+
+def _gain_jacobian(R: np.ndarray, v1: np.ndarray) -> np.ndarray:
+    """d(-R (I + S) v1)/ds for each sample of v1 (n, 3): (n, 3, 6)."""
+    out = np.zeros((len(v1), 3, 6))
+    for col, (i, j) in enumerate(SYMMETRIC_INDEX):
+        dS_v = np.zeros((len(v1), 3))
+        dS_v[:, i] += v1[:, j]
+        if i != j:
+            dS_v[:, j] += v1[:, i]
+        out[:, :, col] = -dS_v @ R.T
+    return out
+
+
+def static_pair_factor(noise, v0, v1, rotation_key, offset_key=None, gain_key=None) -> gtsam.CustomFactor:
+    """Same static vector seen by both IMUs (the patent's residual): ``e = v0 - R (I + S) v1 - d``.
 
     ``v0``, ``v1``: mean accelerometer outputs of one static pose (m s^-2); ``d`` an optional relative bias
-    (imu0 frame).  Right perturbation R Exp(xi): d(-R v1)/dxi = R [v1]x.
+    (imu0 frame); ``S`` an optional relative gain (see :func:`symmetric_gain`).
+    Right perturbation R Exp(xi): d(-R u)/dxi = R [u]x with u = (I + S) v1.
     """
-    v0, v1 = np.asarray(v0, dtype=float), np.asarray(v1, dtype=float)
-    ordered = [rotation_key] + ([offset_key] if offset_key is not None else [])
-
-    def error(this, values, H):
-        R = values.atRot3(rotation_key).matrix()
-        e = v0 - R @ v1
-        if offset_key is not None:
-            e = e - values.atVector(offset_key)
-        if H is not None:
-            H[0] = R @ so3.hat(v1)
-            if offset_key is not None:
-                H[1] = -np.eye(3)
-        return e
-
-    return gtsam.CustomFactor(noise, ordered, error)
+    return dynamic_pair_factor(noise, np.zeros(1), np.asarray(v0, dtype=float)[None],
+                               Signal(np.array([-1.0, 1.0]), np.tile(np.asarray(v1, dtype=float), (2, 1))),
+                               rotation_key, offset_key=offset_key, gain_key=gain_key)
 
 
 @dataclass(frozen=True)
@@ -211,32 +226,36 @@ class Signal:
 
 
 def dynamic_pair_factor(noise, t0_s, v0, signal1: Signal, rotation_key, time_offset_key=None,
-                        offset_key=None, lever_arm_key=None, w0=None, w_dot0=None) -> gtsam.CustomFactor:
+                        offset_key=None, lever_arm_key=None, w0=None, w_dot0=None,
+                        gain_key=None) -> gtsam.CustomFactor:
     """A block of imu0 samples against imu1's signal at the same physical instants.
 
-    ``e_i = v0_i + L_i r - R v1(t0_i - dt) - d`` stacked over the block (3n), with ``t_imu0 = t_imu1 + dt``
-    and, for accelerometers, the lever-arm term ``L_i = [w_dot]x + [w]x^2`` (imu0 frame, from imu0's gyro).
+    ``e_i = v0_i + L_i r - R (I + S) v1(t0_i - dt) - d`` stacked over the block (3n), with
+    ``t_imu0 = t_imu1 + dt``, the optional relative gain ``S`` of imu1 (:func:`symmetric_gain`) and, for
+    accelerometers, the lever-arm term ``L_i = [w_dot]x + [w]x^2`` (imu0 frame, from imu0's gyro).
     For gyros there is no lever arm: angular rate is the same everywhere on a rigid body.
     """
     t0_s, v0 = np.asarray(t0_s, dtype=float), np.asarray(v0, dtype=float)
     L = imu.lever_arm_jacobian(w0, w_dot0) if lever_arm_key is not None else None
-    ordered = [k for k in (rotation_key, time_offset_key, offset_key, lever_arm_key) if k is not None]
+    ordered = [k for k in (rotation_key, time_offset_key, offset_key, lever_arm_key, gain_key) if k is not None]
 
     def error(this, values, H):
         R = values.atRot3(rotation_key).matrix()
+        G = symmetric_gain(values.atVector(gain_key)) if gain_key is not None else np.eye(3)
         dt = values.atVector(time_offset_key)[0] if time_offset_key is not None else 0.0
         v1, slope1 = signal1.at(t0_s - dt)
-        Rv1 = v1 @ R.T
-        e = v0 - Rv1
+        u1, u_slope = v1 @ G.T, slope1 @ G.T
+        e = v0 - u1 @ R.T
         if offset_key is not None:
             e = e - values.atVector(offset_key)
         if lever_arm_key is not None:
             e = e + np.einsum("nij,j->ni", L, values.atVector(lever_arm_key))
         if H is not None:
-            _fill(H, [(rotation_key, (R @ so3.hat(v1)).reshape(-1, 3)),
-                      (time_offset_key, (slope1 @ R.T).reshape(-1, 1)),
+            _fill(H, [(rotation_key, (R @ so3.hat(u1)).reshape(-1, 3)),
+                      (time_offset_key, (u_slope @ R.T).reshape(-1, 1)),
                       (offset_key, np.tile(-np.eye(3), (len(v0), 1))),
-                      (lever_arm_key, L.reshape(-1, 3) if L is not None else None)])
+                      (lever_arm_key, L.reshape(-1, 3) if L is not None else None),
+                      (gain_key, _gain_jacobian(R, v1).reshape(-1, 6) if gain_key is not None else None)])
         return e.reshape(-1)
 
     return gtsam.CustomFactor(noise, ordered, error)

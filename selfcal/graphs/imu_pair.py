@@ -26,6 +26,7 @@ from selfcal.models.static_intervals import detect_static_intervals
 
 ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
 ACCEL_OFFSET, GYRO_OFFSET = gtsam.symbol("o", 0), gtsam.symbol("o", 1)
+ACCEL_GAIN, GYRO_GAIN = gtsam.symbol("s", 0), gtsam.symbol("s", 1)
 GROUPS = ("static", "gyro", "accel")
 
 
@@ -59,6 +60,8 @@ class PairModel:
     lever_arm: bool = True
     accel_offset: bool = True
     gyro_offset: bool = True
+    accel_gain: bool = False  # imu1's accelerometer scale/non-orthogonality relative to imu0 (symmetric, 6)
+    gyro_gain: bool = False
 
 
 @dataclass
@@ -71,6 +74,7 @@ class PairEstimate:
     lever_arm_sigma_m: np.ndarray | None = None
     accel_offset_m_s2: np.ndarray | None = None
     gyro_offset_rad_s: np.ndarray | None = None
+    gains: dict = field(default_factory=dict)  # "accel"/"gyro" -> (I + S (3x3), sigma of the 6 entries of S)
     residual_rms: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
@@ -108,9 +112,11 @@ def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairMod
     graph = gtsam.NonlinearFactorGraph()
     groups = []
     accel_offset = ACCEL_OFFSET if model.accel_offset else None
+    accel_gain = ACCEL_GAIN if model.accel_gain else None
+    gyro_gain = GYRO_GAIN if model.gyro_gain else None
     for pair in static:
         graph.add(fimu.static_pair_factor(robust(pair.sigma * scale["static"], huber_k), pair.accel0, pair.accel1,
-                                          ROTATION, accel_offset))
+                                          ROTATION, accel_offset, accel_gain))
         groups.append("static")
     if dynamic is not None:
         dt_key = TIME_OFFSET if model.time_offset else None
@@ -118,12 +124,14 @@ def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairMod
             n = len(idx)
             graph.add(fimu.dynamic_pair_factor(
                 robust(np.full(3 * n, dynamic.gyro_sigma * scale["gyro"]), huber_k), dynamic.t0_s[idx],
-                dynamic.gyro0[idx], dynamic.gyro1, ROTATION, dt_key, GYRO_OFFSET if model.gyro_offset else None))
+                dynamic.gyro0[idx], dynamic.gyro1, ROTATION, dt_key, GYRO_OFFSET if model.gyro_offset else None,
+                gain_key=gyro_gain))
             groups.append("gyro")
             graph.add(fimu.dynamic_pair_factor(
                 robust(np.full(3 * n, dynamic.accel_sigma * scale["accel"]), huber_k), dynamic.t0_s[idx],
                 dynamic.accel0[idx], dynamic.accel1, ROTATION, dt_key, accel_offset,
-                LEVER_ARM if model.lever_arm else None, dynamic.gyro0[idx], dynamic.gyro_rate_dot0[idx]))
+                LEVER_ARM if model.lever_arm else None, dynamic.gyro0[idx], dynamic.gyro_rate_dot0[idx],
+                gain_key=accel_gain))
             groups.append("accel")
     return graph, groups
 
@@ -183,7 +191,8 @@ def pair_values(R_imu0_imu1, model: PairModel, dt_s=0.0, lever_arm_m=None, accel
     for flag, key, value, dim in ((model.time_offset, TIME_OFFSET, [dt_s], 1),
                                   (model.lever_arm, LEVER_ARM, lever_arm_m, 3),
                                   (model.accel_offset, ACCEL_OFFSET, accel_offset, 3),
-                                  (model.gyro_offset, GYRO_OFFSET, gyro_offset, 3)):
+                                  (model.gyro_offset, GYRO_OFFSET, gyro_offset, 3),
+                                  (model.accel_gain, ACCEL_GAIN, None, 6), (model.gyro_gain, GYRO_GAIN, None, 6)):
         if flag:
             values.insert(key, np.zeros(dim) if value is None else np.asarray(value, dtype=float))
     return values
@@ -221,7 +230,7 @@ def solve_pair(static: list[StaticPair], dynamic: DynamicData | None, model: Pai
         graph, groups = _build(static, dynamic, model, scale, huber_k)
         values = optimize(graph, values)
 
-    keys = [k for k in (ROTATION, TIME_OFFSET, LEVER_ARM) if values.exists(k)]
+    keys = [k for k in (ROTATION, TIME_OFFSET, LEVER_ARM, ACCEL_GAIN, GYRO_GAIN) if values.exists(k)]
     cov = marginal_covariances(graph, values, keys, "the rotation between the IMUs")
     R = values.atRot3(ROTATION).matrix()
     rotation_sigma_deg = np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[ROTATION]))))
@@ -241,6 +250,9 @@ def solve_pair(static: list[StaticPair], dynamic: DynamicData | None, model: Pai
         est.accel_offset_m_s2 = values.atVector(ACCEL_OFFSET)
     if model.gyro_offset:
         est.gyro_offset_rad_s = values.atVector(GYRO_OFFSET)
+    for name, key in (("accel", ACCEL_GAIN), ("gyro", GYRO_GAIN)):
+        if values.exists(key):
+            est.gains[name] = (fimu.symmetric_gain(values.atVector(key)), np.sqrt(np.diag(cov[key])))
     return est
 
 

@@ -106,6 +106,10 @@ class PairCalibration:
             "time_offset_convention": "t_imu0 = t_imu1 + dt",
             "lever_arm_m": _nested(e.lever_arm_m) if e.lever_arm_m is not None else None,
             "lever_arm_sigma_m": _nested(e.lever_arm_sigma_m) if e.lever_arm_sigma_m is not None else None,
+            "relative_gain_imu1": {
+                name: {"G": _nested(G), "S_sigma": _nested(sigma),
+                       "meaning": "v_imu0 = R G v_imu1, G = I + S symmetric: imu1's scale and non-orthogonality"}
+                for name, (G, sigma) in e.gains.items()},
             "residual_rms": e.residual_rms,
             "static_poses": self.n_static, "dynamic_samples": self.n_dynamic,
             "notes": e.notes,
@@ -126,37 +130,56 @@ class PairCalibration:
         return "\n".join(lines)
 
 
-# A lever arm known only to a centimetre, or a clock offset only to a millisecond, is not worth reporting as
-# calibrated: at hand-held rates they change the predicted specific force by less than MEMS noise.
-LEVER_ARM_SIGMA_MAX_M = 0.01
-TIME_OFFSET_SIGMA_MAX_S = 1e-3
+@dataclass(frozen=True)
+class Optional_:
+    """A pair quantity estimated only where the data determine it: its 1-sigma must stay below ``limit``."""
+
+    label: str
+    sigma: object  # PairEstimate -> float
+    limit: float
+    hint: str
+
+
+# A lever arm known only to a centimetre, a clock offset only to a millisecond or a relative gain only to 0.2 %
+# is not worth reporting as calibrated: at hand-held rates each changes the prediction by less than MEMS noise.
+OPTIONAL = {
+    "time_offset": Optional_("time offset", lambda e: e.time_offset_sigma_s, 1e-3,
+                             "needs rotation whose rate changes quickly (shake or twist the rig)"),
+    "lever_arm": Optional_("lever arm", lambda e: float(np.max(e.lever_arm_sigma_m)), 0.01,
+                           "needs rotation rate and angular acceleration about several axes"),
+    "accel_gain": Optional_("accelerometer relative gain", lambda e: float(np.max(e.gains["accel"][1])), 2e-3,
+                            "needs static poses or motion with gravity along all three axes"),
+    "gyro_gain": Optional_("gyro relative gain", lambda e: float(np.max(e.gains["gyro"][1])), 2e-3,
+                           "needs rotation about all three axes"),
+}
 
 
 def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
-                       time_offset: bool | None = None, lowpass_hz: float | None = 5.0) -> PairCalibration:
+                       time_offset: bool | None = None, lowpass_hz: float | None = 5.0,
+                       gains: bool | None = False) -> PairCalibration:
     """Rotation imu0 <- imu1 from the static poses (if any) and the moving parts of the recording.
 
-    ``lever_arm`` / ``time_offset``: True forces, False skips, None estimates where the data determine them
-    (1-sigma below ``LEVER_ARM_SIGMA_MAX_M`` / ``TIME_OFFSET_SIGMA_MAX_S``), and says so in the notes otherwise.
+    ``lever_arm`` / ``time_offset`` / ``gains``: True forces, False skips, None estimates where the data
+    determine them (1-sigma below the limits in ``OPTIONAL``), and says so in the notes otherwise.
+    ``gains`` (off by default) adds imu1's scale and non-orthogonality relative to imu0, for raw outputs that
+    were not calibrated first: R is then the rotation part of the map between them (polar decomposition).
     """
     problem = gp.problem_from_imus(recording.imu(imu0), recording.imu(imu1), lowpass_hz)
     static, dynamic, dt0 = problem.static, problem.dynamic, problem.initial_dt_s
     if not static and dynamic is None:
         raise gp.DegenerateDataError(f"{imu0}/{imu1}: no static poses and no motion found in the recording")
-    model = gp.PairModel(time_offset=dynamic is not None and time_offset is not False,
-                         lever_arm=dynamic is not None and lever_arm is not False)
+    requested = {"time_offset": time_offset, "lever_arm": lever_arm, "accel_gain": gains, "gyro_gain": gains}
+    possible = {"time_offset": dynamic is not None, "lever_arm": dynamic is not None,
+                "accel_gain": dynamic is not None or len(static) >= 6, "gyro_gain": dynamic is not None}
+    model = gp.PairModel(**{name: possible[name] and requested[name] is not False for name in OPTIONAL})
     estimate = gp.solve_pair(static, dynamic, model, initial_dt_s=dt0)
-    weak_dt = model.time_offset and estimate.time_offset_sigma_s > TIME_OFFSET_SIGMA_MAX_S
-    weak_r = model.lever_arm and float(np.max(estimate.lever_arm_sigma_m)) > LEVER_ARM_SIGMA_MAX_M
-    advice = {"time offset": (weak_dt, "needs rotation whose rate changes quickly (shake or twist the rig)"),
-              "lever arm": (weak_r, "needs rotation rate and angular acceleration about several axes")}
-    forced = {"time offset": time_offset, "lever arm": lever_arm}
-    for name, (weak, hint) in advice.items():
-        if weak and forced[name]:
-            raise gp.DegenerateDataError(f"{imu0}/{imu1}: {name} not determined by this recording: {hint}")
-    if weak_dt or weak_r:
-        model = gp.PairModel(time_offset=model.time_offset and not weak_dt, lever_arm=model.lever_arm and not weak_r)
+    weak = {name: getattr(model, name) and spec.sigma(estimate) > spec.limit for name, spec in OPTIONAL.items()}
+    for name, spec in OPTIONAL.items():
+        if weak[name] and requested[name]:
+            raise gp.DegenerateDataError(f"{imu0}/{imu1}: {spec.label} not determined by this recording: {spec.hint}")
+    if any(weak.values()):
+        model = gp.PairModel(**{name: getattr(model, name) and not weak[name] for name in OPTIONAL})
         estimate = gp.solve_pair(static, dynamic, model, initial_dt_s=dt0)
-        estimate.notes += [f"{name} not estimated: the data do not determine it ({hint})"
-                           for name, (weak, hint) in advice.items() if weak]
+        estimate.notes += [f"{spec.label} not estimated: the data do not determine it ({spec.hint})"
+                           for name, spec in OPTIONAL.items() if weak[name]]
     return PairCalibration(imu0, imu1, estimate, len(static), 0 if dynamic is None else len(dynamic.t0_s))
