@@ -202,3 +202,14 @@ def test_pair_factors_with_relative_gain(seed):
 
 
 G_GRAVITY = 9.81
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_linear_bias_factor(seed):
+    rng = np.random.default_rng(seed)
+    b, k1, k2 = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    dev = {"temperature": float(rng.normal()), "time_s": float(rng.normal() * 100)}
+    mean = b + k1 * dev["temperature"] + k2 * dev["time_s"]
+    factor = fimu.linear_bias_factor(unit_noise(3), mean, 1, [("temperature", 2), ("time_s", 3)], dev)
+    assert np.max(np.abs(factor.unwhitenedError(_values({1: b, 2: k1, 3: k2})))) < 1e-12
+    assert_factor_jacobians(factor, {1: rng.normal(size=3), 2: rng.normal(size=3), 3: rng.normal(size=3)})

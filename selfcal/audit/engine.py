@@ -8,8 +8,9 @@ catalog of candidate effects.  The engine is the same for every system:
    whitened residual sum of squares that one Gauss–Newton step with the candidate's extra variables would
    give, as an F statistic against the residual variance.  It needs no refit, so every candidate is ranked.
 2. Candidates significant at ``alpha / m`` (Bonferroni over the m candidates still open) are refitted in
-   order of evidence; one is accepted only if it lowers the BIC AND the held-out residual (2-fold, split in
-   time), so an effect must predict data it was not fitted to.
+   order of evidence; one is accepted only if it lowers the BIC AND the held-out residual (cross-validated
+   over contiguous blocks in time: all families whitened, and its own target family in physical units), so
+   an effect must predict data it was not fitted to.
 3. Repeat until nothing significant is left.  No finding is a valid answer.
 4. When another candidate explains the data about as well as the accepted one (BIC within 6, "strong
    evidence" on Kass & Raftery's scale) and loses its own evidence once the accepted one is in, the finding
@@ -235,7 +236,9 @@ def run_audit(system: AuditSystem, max_findings: int = 8, alpha: float = FAMILY_
             tried.append((trial, new_fit, delta_bic))
             log.info("%s: F=%.3g p=%.3g dBIC=%.1f heldout %.4g -> %.4g", trial.candidate.key, trial.f_stat,
                      trial.p_value, delta_bic, heldout_rss, new_heldout_rss)
-            if delta_bic < 0 and new_heldout_rss < heldout_rss:
+            label = f"{trial.candidate.sensor}/{trial.candidate.target}"
+            target_held = new_heldout_rms.get(label, 0.0) <= heldout_rms.get(label, np.inf)
+            if delta_bic < 0 and new_heldout_rss < heldout_rss and target_held:
                 accepted = (trial, new_fit, delta_bic, new_heldout_rss, new_heldout_rms)
                 break
         history.append({"step": step + 1, "threshold": threshold,

@@ -44,7 +44,6 @@ class ImuIntrinsicsAudit:
     """Audit system for one IMU of a multi-position recording."""
 
     name = "imu"
-    folds = 2
 
     def __init__(self, data: ImuData, gravity_m_s2: float, base: str = "bias"):
         timed = replace(data, channels={**data.channels, TIME_CHANNEL: data.t_s},
@@ -62,8 +61,12 @@ class ImuIntrinsicsAudit:
                                                              ("gyro_misalignment", "gyro_motion")))
         else:
             raise ValueError(f"unknown base model {base!r} for system imu: choose 'bias' or 'standard'")
+        # held-out folds: contiguous blocks of poses (in time order); two halves when there are enough poses,
+        # else up to five blocks so every training set keeps enough poses for the full accelerometer model
         n = len(self.problem.poses)
-        self._fold_poses = [list(range(n // 2)), list(range(n // 2, n))]  # split in time: poses are in order
+        self.folds = 2 if n >= 20 else max(2, min(5, n // 2))
+        blocks = np.array_split(np.arange(n), self.folds)
+        self._fold_poses = [[k for k in range(n) if k not in set(b)] for b in blocks]
 
     # --- catalog --------------------------------------------------------------------------------------------
 

@@ -21,7 +21,6 @@ import base64
 import datetime as _dt
 import html
 import io
-import logging
 import math
 import re
 from pathlib import Path
@@ -32,8 +31,6 @@ from matplotlib.figure import Figure
 from selfcal.audit.diagnostics import component_names, diagnose
 from selfcal.audit.engine import FAMILY_ALPHA, AuditResult, Candidate, Fit, ResidualFamily
 from selfcal.io.atomic import atomic_write_text
-
-log = logging.getLogger(__name__)
 
 # estimate keys shown in a unit engineers read off datasheets: key -> (unit shown, factor from the JSON unit)
 DISPLAY_UNITS = {"scale": ("ppm", 1e6), "angles": ("mrad", 1e3), "dt_s": ("ms", 1e3), "r_m": ("mm", 1e3),
@@ -61,7 +58,8 @@ td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
 .pbad{background:#f6c9c4}.pwarn{background:#fbe7c0}
 .acc{background:#cdebd0;font-weight:600}.sig{background:#fbe7c0}.inmodel{color:#999;background:#f5f5f5}
 img{max-width:100%;height:auto;border:1px solid #e4e4e4;margin:6px 0}
-.erow{white-space:nowrap}td.ev{min-width:10em}td.gain{text-align:right;font-variant-numeric:tabular-nums}td.hist{white-space:nowrap}
+.erow{white-space:nowrap}td.ev{min-width:10em}td.hist{white-space:nowrap}
+td.gain{text-align:right;font-variant-numeric:tabular-nums}
 figure{margin:8px 0 18px}figcaption{font-size:13px;color:#444}
 """
 
@@ -236,22 +234,29 @@ def format_estimate(effect: str, estimate: dict, std: dict | None) -> str:
         if isinstance(value, str):
             lines.append(f"<div class=\"small\">{html.escape(key)}: {html.escape(value)}</div>")
             continue
-        values = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
-        sigmas = std.get(key)
-        sigmas = (np.atleast_1d(np.asarray(sigmas, dtype=float)).ravel() if sigmas is not None
-                  else np.full(values.shape, np.nan))
+        try:
+            values = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
+        except (TypeError, ValueError):  # not numbers: shown as they are
+            lines.append(f"<div>{html.escape(key)}: {_cell(value)}</div>")
+            continue
+        try:
+            sigmas = np.atleast_1d(np.asarray(std.get(key, np.nan), dtype=float)).ravel()
+        except (TypeError, ValueError):
+            sigmas = np.full(values.shape, np.nan)
         if sigmas.shape != values.shape:
             sigmas = np.full(values.shape, np.nan)
         factor = DISPLAY_UNITS[key][1] if key in DISPLAY_UNITS else 1.0
         values, sigmas = values * factor, sigmas * factor
+        largest = np.nanmax(np.abs(values)) if np.any(np.isfinite(values)) else 0.0
         exponent = _engineering_exponent(values)
-        if -3 <= exponent <= 3 and key in DISPLAY_UNITS:
-            exponent = 0
+        if 1e-2 <= largest < 1e4 or (-3 <= exponent <= 3 and key in DISPLAY_UNITS):
+            exponent = 0  # readable as it is
         if exponent:
             values, sigmas = values / 10.0**exponent, sigmas / 10.0**exponent
         unit = _estimate_unit(key, estimate, effect)
-        scale_txt = f"&times;10<sup>{_minus(str(exponent))}</sup> " if exponent else ""
-        head = f"<b>{html.escape(key)}</b> <span class=\"small\">[{scale_txt}{unit_html(unit) or '&ndash;'}]</span>"
+        bracket = " ".join(t for t in (f"&times;10<sup>{_minus(str(exponent))}</sup>" if exponent else "",
+                                       unit_html(unit)) if t) or "&ndash;"
+        head = f"<b>{html.escape(key)}</b> <span class=\"small\">[{bracket}]</span>"
         cells = [_value_sigma(v, s) for v, s in zip(values, sigmas)]
         if values.size == 1:
             body = cells[0]
@@ -300,6 +305,13 @@ def _family_by_label(fit: Fit, label: str) -> ResidualFamily | None:
 
 # --- sections -----------------------------------------------------------------------------------------------------
 
+def _family_alpha(result: AuditResult) -> float:
+    """The level the search ran at: the first step's threshold times its number of open candidates."""
+    if result.history and result.history[0].get("trials"):
+        return float(result.history[0]["threshold"]) * len(result.history[0]["trials"])
+    return FAMILY_ALPHA
+
+
 def _header(result: AuditResult, extras: dict) -> str:
     final = result.to_json()["final_model"]
     date = extras.get("run_date") or _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
@@ -309,8 +321,8 @@ def _header(result: AuditResult, extras: dict) -> str:
     rows += [("base model", html.escape(_base_description(result))),
              ("final model", html.escape(" + ".join(final))),
              ("findings", str(len(result.findings))),
-             ("search", f"{len(result.history)} steps, family-wise &alpha; = {num(FAMILY_ALPHA)} per step "
-                        "(Bonferroni over the open candidates)"),
+             ("search", f"{len(result.history)} step{'s' if len(result.history) != 1 else ''}, family-wise "
+                        f"&alpha; = {num(_family_alpha(result))} per step (Bonferroni over the open candidates)"),
              ("run date", html.escape(str(date)))]
     table = "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in rows)
     return f"<h1>Audit report: {html.escape(result.system)}</h1>\n<table class=\"meta\">{table}</table>"
@@ -319,7 +331,6 @@ def _header(result: AuditResult, extras: dict) -> str:
 def _summary(result: AuditResult) -> str:
     """One paragraph: per residual family, what the base model leaves and what the accepted effects remove."""
     base_desc = _base_description(result)
-    candidates = _accepted_candidates(result)
     by_target: dict[str, list[int]] = {}
     for i, finding in enumerate(result.findings):
         by_target.setdefault(finding.get("target", "?"), []).append(i)
@@ -346,14 +357,13 @@ def _summary(result: AuditResult) -> str:
             items.append(f"{html.escape(fam.label)} {before}{num(fam.rms, 3)} {unit_html(fam.unit)}")
         sentences.append("No effect was accepted on " + "; ".join(items) + " (changes come from shared parameters).")
     if not result.findings:
-        rms = "; ".join(f"{html.escape(f.label)} {num(f.rms, 3)} {unit_html(f.unit)}" for f in result.final_fit.families)
+        rms = "; ".join(f"{html.escape(f.label)} {num(f.rms, 3)} {unit_html(f.unit)}"
+                        for f in result.final_fit.families)
         sentences.append(f"No candidate effect is significant and predictive: the data give no evidence against the "
-                         f"{html.escape(base_desc)} model (residual RMS: {rms}). That is a valid answer, not a failure.")
+                         f"{html.escape(base_desc)} model (residual RMS: {rms}). That is a valid answer, not a "
+                         "failure.")
     out = f"<div class=\"summary\"><p>{' '.join(sentences)}</p></div>"
-    ambiguous = [(f, c) for f, c in zip(result.findings, candidates) if f.get("ambiguous_with")]
-    for finding, _ in ambiguous:
-        out += _ambiguity_box(finding)
-    return out
+    return out + "".join(_ambiguity_box(f) for f in result.findings if f.get("ambiguous_with"))
 
 
 def _ambiguity_text(finding: dict) -> str:
@@ -661,7 +671,8 @@ def _diagnostics_section(fit: Fit) -> str:
             "<th colspan=\"2\">mean (t-test p)</th><th rowspan=\"2\">RMS</th><th rowspan=\"2\">Ljung-Box p</th>"
             "<th rowspan=\"2\">normality p</th><th colspan=\"3\">strongest linear dependence</th>"
             "<th colspan=\"2\">strongest binned (ANOVA) dependence</th></tr>"
-            "<tr><th>mean</th><th>p</th><th>coordinate</th><th>slope<br><span class=\"small\">per coord. unit</span></th><th>p (adj.)</th>"
+            "<tr><th>mean</th><th>p</th><th>coordinate</th>"
+            "<th>slope<br><span class=\"small\">per coord. unit</span></th><th>p (adj.)</th>"
             "<th>coordinate</th><th>p (adj.)</th></tr>")
     return ("<h2>Residual diagnostics of the final model</h2>\n"
             "<p class=\"small\">What the final model still leaves. Tests run on the whitened residuals (scale-free); "
@@ -712,7 +723,8 @@ def _history_section(result: AuditResult) -> str:
         stop = "the search stopped: no candidate left is significant."
     return ("<h2>Search history</h2>\n"
             "<p class=\"small\">Score-test p-value (and F) of every open candidate at each step "
-            "(candidate = effect@sensor:target). Green &#10004;: accepted; amber: significant (p below the Bonferroni threshold "
+            "(candidate = effect@sensor:target). Green &#10004;: accepted; amber: significant (p below the "
+            "Bonferroni threshold "
             f"&alpha;/m) but not the one accepted; grey: already in the model. After the last step, {stop}</p>\n"
             f"<table>{head}{''.join(rows)}</table>")
 

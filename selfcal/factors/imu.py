@@ -114,6 +114,21 @@ def static_accel_factor(noise, a_raw_mean, gravity_m_s2, up_key, keys: AccelKeys
     return gtsam.CustomFactor(noise, ordered, error)
 
 
+def linear_bias_factor(noise, mean, bias_key, slopes, deviation: dict) -> gtsam.CustomFactor:
+    """A segment of a static log: ``e = mean - b - sum_c k_c dc``, with slopes ``(channel, key)`` and the
+    segment's channel deviations ``dc``; the plain bias model of a sensor at rest, in its output units."""
+    mean = np.asarray(mean, dtype=float)
+    ordered = [bias_key] + [k for _, k in slopes]
+
+    def error(this, values, H):
+        e = mean - values.atVector(bias_key) - _channel_bias(values, slopes, deviation)
+        if H is not None:
+            _fill(H, [(bias_key, -np.eye(3))] + [(k, -np.eye(3) * deviation[name]) for name, k in slopes])
+        return e
+
+    return gtsam.CustomFactor(noise, ordered, error)
+
+
 def static_gyro_factor(noise, w_raw_mean, gravity_m_s2, up_key, keys: GyroKeys, nominal: imu.GyroIntrinsics,
                        channel_deviation: dict | None = None) -> gtsam.CustomFactor:
     """Static pose, zero rotation: ``e = w_raw_mean - b_g - sum_c k_c dc - A g u``  (rad s^-1, raw frame).

@@ -4,8 +4,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from selfcal.audit.engine import AuditResult, run_audit
 from selfcal.audit.imu_pair_system import ImuPairAudit
+from selfcal.audit.imu_static_system import ImuStaticAudit
 from selfcal.audit.imu_system import ImuIntrinsicsAudit, simulate_like
 from selfcal.io.recording import Recording
 from selfcal.models import imu
@@ -39,8 +42,13 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
     names = sensors or recording.imu_names()
     if system == "imu":
         data = recording.imu(names[0])
-        audit_system = ImuIntrinsicsAudit(data, float(data.meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
-                                          base or "bias")
+        if is_static_log(data):
+            if base not in (None, "bias"):
+                raise ValueError(f"a static log is audited against the base model 'bias', not {base!r}")
+            audit_system = ImuStaticAudit(data)
+        else:
+            audit_system = ImuIntrinsicsAudit(data, float(data.meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
+                                              base or "bias")
     elif system == "imu-pair":
         if len(names) < 2:
             raise ValueError(f"system imu-pair needs two IMUs, the recording has {names}")
@@ -51,9 +59,25 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
         raise ValueError(f"unknown system {system!r}; known: {', '.join(SYSTEMS)}")
     result = run_audit(audit_system, progress=progress)
     run = AuditRun(result)
-    if system == "imu":
+    if isinstance(audit_system, ImuIntrinsicsAudit):
         run.simulation = measured_vs_simulated(audit_system, result, simulate_seed)
     return run
+
+
+STATIC_LOG_MAX_TILT_DEG = 2.0
+
+
+def is_static_log(data) -> bool:
+    """One orientation throughout: the gravity direction of 1 s means never leaves a 2 deg cone."""
+    n = max(1, int(round(data.rate_hz)))
+    m = len(data.accel_m_s2) // n
+    if m < 10:
+        return False
+    means = data.accel_m_s2[:m * n].reshape(m, n, 3).mean(axis=1)
+    directions = means / np.linalg.norm(means, axis=1, keepdims=True)
+    mean = directions.mean(axis=0)
+    cos = directions @ (mean / np.linalg.norm(mean))
+    return bool(np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) < STATIC_LOG_MAX_TILT_DEG)
 
 
 def measured_vs_simulated(system: ImuIntrinsicsAudit, result: AuditResult, seed: int) -> list[dict]:

@@ -1,0 +1,132 @@
+"""The static-recording system for the audit: one IMU at rest in one orientation (bias and noise logs).
+
+The recording is cut into segments of ``segment_s``; each segment's mean is one residual per axis.  Base model:
+a constant bias per axis.  Catalog: ``bias_drift`` (bias linear in time), ``bias_temperature`` (bias linear
+in a temperature channel) and ``channel:<name>`` (any other auxiliary channel), for accelerometer and gyro.
+A slowly wandering bias (random walk) looks like drift over one half of the log and fails to predict the
+other half, so the held-out test keeps it out of the deterministic findings; the Allan analysis
+(:mod:`selfcal.audit.noise`) names it instead.
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.imu_system import MEANINGS, is_temperature
+from selfcal.factors.imu import linear_bias_factor
+from selfcal.graphs.solve import gaussian, marginal_covariances, optimize
+from selfcal.io.recording import ImuData
+
+QUANTITIES = {"accel": ("m s^-2", "accel_m_s2"), "gyro": ("rad s^-1", "gyro_rad_s")}
+
+
+class ImuStaticAudit:
+    name = "imu"
+    folds = 2
+
+    def __init__(self, data: ImuData, segment_s: float = 5.0):
+        self.sensor = data.name
+        self.base_model = "bias"
+        self.base_effects = ()
+        t = data.t_s
+        edges = np.arange(0.0, t[-1] + segment_s, segment_s)
+        seg = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, len(edges) - 2)
+        counts = np.bincount(seg, minlength=len(edges) - 1)
+        keep = counts >= max(3, 0.5 * np.median(counts))
+        self.n_segments = int(keep.sum())
+
+        def means(x):
+            sums = np.stack([np.bincount(seg, weights=x[:, i], minlength=len(counts)) for i in range(x.shape[1])], 1)
+            return sums[keep] / counts[keep, None]
+
+        self.time_s = means(t[:, None])[:, 0]
+        self.means = {q: means(getattr(data, attr)) for q, (_, attr) in QUANTITIES.items()}
+        # sigma of a segment mean from the sample scatter about the segment means (white-noise level)
+        self.sigma = {}
+        for q, (_, attr) in QUANTITIES.items():
+            x = getattr(data, attr)
+            full = np.zeros((len(counts), 3))
+            full[keep] = self.means[q]
+            resid = (x - full[seg])[keep[seg]]
+            self.sigma[q] = np.maximum(resid.std(axis=0), 1e-12) / np.sqrt(np.median(counts[keep]))
+        self.channels = {name: means(np.asarray(v, dtype=float)[:, None])[:, 0] for name, v in data.channels.items()}
+        self.channel_units = dict(data.channel_units)
+        self.channels["time_s"] = self.time_s
+        self.channel_units["time_s"] = "s"
+        self.refs = {name: float(np.mean(v)) for name, v in self.channels.items()}
+        half = len(self.time_s) // 2
+        self._folds = [np.arange(half), np.arange(half, len(self.time_s))]
+
+    def candidates(self) -> list[Candidate]:
+        out = []
+        for q in QUANTITIES:
+            out.append(Candidate("bias_drift", self.sensor, MEANINGS["bias_drift"], q, "time"))
+            for name in self.channels:
+                if name == "time_s":
+                    continue
+                if is_temperature(name):
+                    out.append(Candidate("bias_temperature", self.sensor, MEANINGS["bias_temperature"], q, name))
+                else:
+                    out.append(Candidate(f"channel:{name}", self.sensor,
+                                         f"{q} bias depends on auxiliary channel {name} "
+                                         f"[{self.channel_units.get(name, '')}]", q, name))
+        return out
+
+    @staticmethod
+    def _channel(c: Candidate) -> str:
+        return "time_s" if c.effect == "bias_drift" else c.coordinate
+
+    def _keys(self, effects):
+        """Bias key per quantity and (channel, key) slopes per quantity, in a fixed order."""
+        keys = {q: (gtsam.symbol("b", i), []) for i, q in enumerate(QUANTITIES)}
+        for j, c in enumerate(effects):
+            keys[c.target][1].append((self._channel(c), gtsam.symbol("k", j)))
+        return keys
+
+    def _graph(self, effects, rows):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for q, (bias_key, slopes) in self._keys(effects).items():
+            values.insert(bias_key, self.means[q][rows].mean(axis=0))
+            for _, key in slopes:
+                values.insert(key, np.zeros(3))
+            for r in rows:
+                deviation = {name: self.channels[name][r] - self.refs[name] for name, _ in slopes}
+                graph.add(linear_bias_factor(gaussian(self.sigma[q]), self.means[q][r], bias_key, slopes, deviation))
+        return graph, values
+
+    def fit(self, effects, fold=None) -> Fit:
+        rows = np.arange(len(self.time_s)) if fold is None else self._folds[fold]
+        graph, values = self._graph(effects, rows)
+        values = optimize(graph, values)
+        return Fit(tuple(effects), graph, values, self._families(effects, values, rows), {"rows": rows})
+
+    def extend(self, fit: Fit, candidate: Candidate):
+        graph, values = self._graph(fit.effects + (candidate,), fit.context["rows"])
+        new_key = gtsam.symbol("k", len(fit.effects))
+        for key in fit.values.keys():
+            values.update(key, fit.values.atVector(key))
+        return graph, values, [(new_key, np.arange(3))]
+
+    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+        return self._families(fit.effects, fit.values, self._folds[1 - fold])
+
+    def _families(self, effects, values, rows) -> list[ResidualFamily]:
+        coords = {"time_s": self.time_s[rows], **{n: v[rows] for n, v in self.channels.items() if n != "time_s"}}
+        out = []
+        for q, (bias_key, slopes) in self._keys(effects).items():
+            predicted = values.atVector(bias_key) + sum(
+                (np.multiply.outer(self.channels[n][rows] - self.refs[n], values.atVector(k)) for n, k in slopes), 0.0)
+            resid = self.means[q][rows] - predicted
+            out.append(ResidualFamily(self.sensor, q, QUANTITIES[q][0], resid / self.sigma[q], resid, coords,
+                                      tuple(n for n in self.channels if n != "time_s")))
+        return out
+
+    def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        keys = self._keys(fit.effects)
+        key = dict(keys[candidate.target][1])[self._channel(candidate)]
+        cov = marginal_covariances(fit.graph, fit.values, [key], candidate.effect)[key] * variance_factor(fit)
+        per = self.channel_units.get(self._channel(candidate), "")
+        return ({"slope": fit.values.atVector(key).tolist(), "unit": f"{QUANTITIES[candidate.target][0]} per {per}",
+                 "target": f"{self.sensor}/{candidate.target}"},
+                {"slope": np.sqrt(np.diag(cov)).tolist()})
