@@ -48,7 +48,7 @@ from typing import Callable
 
 import allantools
 import numpy as np
-from scipy import linalg, optimize, special, stats
+from scipy import optimize, special, stats
 
 from selfcal.io.atomic import atomic_write_bytes
 
@@ -388,22 +388,28 @@ class _LogLikelihood:
         self.y = np.log(curve.adev**2) - offset
         self.taus_s = curve.taus_s
         m = np.rint(curve.taus_s * curve.rate_hz).astype(int)
-        self.sRs = oadev_correlation(m, curve.n_samples) * np.outer(self.s, self.s)
+        # C(f) = V diag(lam + f^2) V^T from one eigendecomposition of S R S: every f costs a matrix product
+        self.lam, self.vec = np.linalg.eigh(oadev_correlation(m, curve.n_samples) * np.outer(self.s, self.s))
 
-    def cholesky(self, f: float) -> np.ndarray:
-        return np.linalg.cholesky(self.sRs + f**2 * np.eye(len(self.y)))
+    def whitener(self, f: float) -> np.ndarray:
+        """``W`` with ``W^T W = C(f)^-1``: ``W r`` are independent unit-variance residuals."""
+        return self.vec.T / np.sqrt(self.lam + f**2)[:, None]
 
     def terms(self, r: np.ndarray, f: float) -> tuple[float, float]:
         """``(nll, chi2)``: ``r^T C^-1 r + ln det C`` and ``r^T C^-1 r`` for residuals ``r`` (log AVAR)."""
-        chol = self.cholesky(f)
-        w = linalg.solve_triangular(chol, r, lower=True)
-        chi2 = float(w @ w)
-        return chi2 + 2.0 * float(np.sum(np.log(np.diag(chol)))), chi2
+        v = self.lam + f**2
+        chi2 = float(np.sum((self.vec.T @ r) ** 2 / v))
+        return chi2 + float(np.sum(np.log(v))), chi2
 
     def ml_model_error(self, r: np.ndarray) -> float:
         """The model-error term f maximising the likelihood of residuals ``r``."""
         lo, hi = math.log(MODEL_ERROR_MIN), math.log(10.0)
-        nll = lambda log_f: self.terms(r, math.exp(log_f))[0]  # noqa: E731
+        u2 = (self.vec.T @ r) ** 2
+
+        def nll(log_f):
+            v = self.lam + math.exp(2.0 * log_f)
+            return float(np.sum(u2 / v + np.log(v)))
+
         res = optimize.minimize_scalar(nll, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
         return math.exp(res.x) if res.fun < nll(lo) else MODEL_ERROR_MIN
 
@@ -484,9 +490,9 @@ def fit_noise_model(curve: AllanCurve, model: str) -> ModelFit:
             theta = np.clip(np.log(p0), lo + 1e-9, hi - 1e-9)
             prev = math.inf
             for _ in range(100):
-                chol = like.cholesky(f)
+                w = like.whitener(f)
                 theta = optimize.least_squares(
-                    lambda th: linalg.solve_triangular(chol, y - model_log(th), lower=True), theta,
+                    lambda th: w @ (y - model_log(th)), theta,
                     bounds=(lo, hi), method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=1000).x
                 f = like.ml_model_error(y - model_log(theta))
                 cur = like.terms(y - model_log(theta), f)[0]
@@ -503,7 +509,7 @@ def fit_noise_model(curve: AllanCurve, model: str) -> ModelFit:
         h = np.zeros_like(theta)
         h[j] = 1e-6
         jac[:, j] = (model_log(theta + h) - model_log(theta - h)) / 2e-6
-    wj = linalg.solve_triangular(like.cholesky(f), jac, lower=True)
+    wj = like.whitener(f) @ jac
     cov = np.linalg.pinv(wj.T @ wj)
     std = p * np.sqrt(np.clip(np.diag(cov), 0.0, None))
     # a parameter pinned at a bound has no Gaussian error (the model then reduces to a smaller one, which

@@ -419,8 +419,8 @@ def _findings_table(result: AuditResult) -> str:
             "<th>evidence</th><th>gain (before &rarr; after)</th><th>ambiguous with</th></tr>")
     return ("<h2>Findings, in the order accepted</h2>\n"
             "<p class=\"small\">Each finding was significant against the Bonferroni threshold of its step, lowered "
-            "the BIC, and lowered the residual on data it was not fitted to (2-fold, split in time). Held-out "
-            "RMS is on the predicted half of each fold.</p>\n"
+            "the BIC, and lowered the residual on data it was not fitted to (cross-validation over contiguous "
+            "blocks in time). Held-out RMS is on the predicted block of each fold.</p>\n"
             f"<table>{head}{''.join(rows)}</table>")
 
 
