@@ -66,20 +66,25 @@ def scale_and_misalignment(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 1.0 / K - 1.0, np.array([-T[0, 1], T[0, 2], -T[1, 2]])
 
 
+class _TemperatureBias:
+    """``bias(T) = bias + temperature_slope (T - T_ref)``, shared by both triads."""
+
+    def bias_at(self, temperature_degC=None) -> np.ndarray:
+        """Bias (3,) without a temperature, else (N, 3) for temperatures (N,) in degC."""
+        if temperature_degC is None:
+            return self.bias
+        dT = np.asarray(temperature_degC, dtype=float) - self.temperature_ref_degC
+        return self.bias + np.multiply.outer(dT, self.temperature_slope)
+
+
 @dataclass
-class AccelIntrinsics:
+class AccelIntrinsics(_TemperatureBias):
     """Accelerometer triad intrinsics: ``f_S = M (a_raw - bias - temperature_slope (T - T_ref))``."""
 
     M: np.ndarray = field(default_factory=lambda: np.eye(3))
     bias: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m s^-2
     temperature_slope: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m s^-2 per degC
     temperature_ref_degC: float = 25.0
-
-    def bias_at(self, temperature_degC=None) -> np.ndarray:
-        if temperature_degC is None:
-            return self.bias
-        dT = np.asarray(temperature_degC, dtype=float) - self.temperature_ref_degC
-        return self.bias + np.multiply.outer(dT, self.temperature_slope)
 
     def raw_from_specific_force(self, f_S: np.ndarray, temperature_degC=None) -> np.ndarray:
         """Noise-free raw accelerometer output (N, 3) for true specific force f_S (N, 3)."""
@@ -91,7 +96,7 @@ class AccelIntrinsics:
 
 
 @dataclass
-class GyroIntrinsics:
+class GyroIntrinsics(_TemperatureBias):
     """Gyro triad intrinsics: ``w_S = M (w_raw - bias - A f_S - temperature_slope (T - T_ref))``."""
 
     M: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -99,12 +104,6 @@ class GyroIntrinsics:
     A: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # rad s^-1 per m s^-2
     temperature_slope: np.ndarray = field(default_factory=lambda: np.zeros(3))  # rad s^-1 per degC
     temperature_ref_degC: float = 25.0
-
-    def bias_at(self, temperature_degC=None) -> np.ndarray:
-        if temperature_degC is None:
-            return self.bias
-        dT = np.asarray(temperature_degC, dtype=float) - self.temperature_ref_degC
-        return self.bias + np.multiply.outer(dT, self.temperature_slope)
 
     def raw_from_rate(self, w_S: np.ndarray, f_S: np.ndarray, temperature_degC=None) -> np.ndarray:
         """Noise-free raw gyro output (N, 3) for true rate w_S and true specific force f_S (N, 3)."""
