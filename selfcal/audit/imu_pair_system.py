@@ -15,14 +15,19 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
-from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.engine import Candidate, Fit, ResidualFamily
+from selfcal.factors import imu as fimu
 from selfcal.graphs import imu_pair as gp
 from selfcal.graphs.solve import marginal_covariances, optimize
 from selfcal.io.recording import ImuData
 from selfcal.models import imu
 
 MEANINGS = {"time_offset": "the clocks of the two IMUs are offset: t_imu0 = t_imu1 + dt",
-            "lever_arm": "imu1 is displaced from imu0: rotation adds centripetal and tangential acceleration"}
+            "lever_arm": "imu1 is displaced from imu0: rotation adds centripetal and tangential acceleration",
+            "accel_relative_gain": "imu1's accelerometer scale / non-orthogonality differs from imu0's",
+            "gyro_relative_gain": "imu1's gyro scale / non-orthogonality differs from imu0's"}
+KEYS = {"time_offset": (gp.TIME_OFFSET, 1), "lever_arm": (gp.LEVER_ARM, 3),
+        "accel_relative_gain": (gp.ACCEL_GAIN, 6), "gyro_relative_gain": (gp.GYRO_GAIN, 6)}
 
 
 class ImuPairAudit:
@@ -48,11 +53,16 @@ class ImuPairAudit:
 
     def candidates(self) -> list[Candidate]:
         return [Candidate("time_offset", self.imu1, MEANINGS["time_offset"], "pair_gyro", "angular acceleration"),
-                Candidate("lever_arm", self.imu1, MEANINGS["lever_arm"], "pair_accel", "angular rate")]
+                Candidate("lever_arm", self.imu1, MEANINGS["lever_arm"], "pair_accel", "angular rate"),
+                Candidate("accel_relative_gain", self.imu1, MEANINGS["accel_relative_gain"], "pair_accel",
+                          "specific force"),
+                Candidate("gyro_relative_gain", self.imu1, MEANINGS["gyro_relative_gain"], "pair_gyro",
+                          "angular rate")]
 
     def _model(self, effects) -> gp.PairModel:
         names = {c.effect for c in effects}
-        return gp.PairModel(time_offset="time_offset" in names, lever_arm="lever_arm" in names)
+        return gp.PairModel(time_offset="time_offset" in names, lever_arm="lever_arm" in names,
+                            accel_gain="accel_relative_gain" in names, gyro_gain="gyro_relative_gain" in names)
 
     def _data(self, part):
         """Static pairs and dynamic samples of all data (None) or of one half."""
@@ -83,9 +93,9 @@ class ImuPairAudit:
         static, dynamic = self._data(fit.context["fold"])
         graph, _ = gp._build(static, dynamic, model, self.scale, huber_k=None)
         values = gtsam.Values(fit.values)
-        key = gp.TIME_OFFSET if candidate.effect == "time_offset" else gp.LEVER_ARM
-        values.insert(key, np.zeros(1 if key == gp.TIME_OFFSET else 3))
-        return graph, values, [(key, np.arange(1 if key == gp.TIME_OFFSET else 3))]
+        key, dim = KEYS[candidate.effect]
+        values.insert(key, np.zeros(dim))
+        return graph, values, [(key, np.arange(dim))]
 
     def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
         static, dynamic = self._data(1 - fold)
@@ -97,28 +107,43 @@ class ImuPairAudit:
         r = values.atVector(gp.LEVER_ARM) if model.lever_arm else np.zeros(3)
         d_a = values.atVector(gp.ACCEL_OFFSET) if values.exists(gp.ACCEL_OFFSET) else np.zeros(3)
         d_g = values.atVector(gp.GYRO_OFFSET) if values.exists(gp.GYRO_OFFSET) else np.zeros(3)
+        G_a = fimu.symmetric_gain(values.atVector(gp.ACCEL_GAIN)) if model.accel_gain else np.eye(3)
+        G_g = fimu.symmetric_gain(values.atVector(gp.GYRO_GAIN)) if model.gyro_gain else np.eye(3)
         t = dynamic.t0_s
         coords = {"time_s": t, "angular_rate": np.linalg.norm(dynamic.gyro0, axis=1),
                   "angular_acceleration": np.linalg.norm(dynamic.gyro_rate_dot0, axis=1)}
-        gyro = dynamic.gyro0 - dynamic.gyro1.at(t - dt)[0] @ R.T - d_g
+        gyro = dynamic.gyro0 - dynamic.gyro1.at(t - dt)[0] @ (R @ G_g).T - d_g
         lever = np.einsum("nij,j->ni", imu.lever_arm_jacobian(dynamic.gyro0, dynamic.gyro_rate_dot0), r)
-        accel = dynamic.accel0 + lever - dynamic.accel1.at(t - dt)[0] @ R.T - d_a
+        accel = dynamic.accel0 + lever - dynamic.accel1.at(t - dt)[0] @ (R @ G_a).T - d_a
         families = [
             ResidualFamily(self.imu1, "pair_gyro", "rad s^-1", gyro / (dynamic.gyro_sigma * self.scale["gyro"]), gyro,
                            coords),
             ResidualFamily(self.imu1, "pair_accel", "m s^-2", accel / (dynamic.accel_sigma * self.scale["accel"]),
                            accel, coords)]
         if static:
-            e = np.array([p.accel0 - R @ p.accel1 - d_a for p in static])
+            e = np.array([p.accel0 - R @ G_a @ p.accel1 - d_a for p in static])
             sigma = np.array([p.sigma for p in static]) * self.scale["static"]
             families.append(ResidualFamily(self.imu1, "pair_static", "m s^-2", e / sigma, e,
                                            {"pose": np.arange(len(static), dtype=float)}))
         return families
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
-        key = gp.TIME_OFFSET if candidate.effect == "time_offset" else gp.LEVER_ARM
-        cov = marginal_covariances(fit.graph, fit.values, [key], candidate.effect)[key] * variance_factor(fit)
+        """The candidate's value and 1-sigma, with each group's noise level re-estimated from this fit's own
+        residuals (the base fit's levels still held every effect not yet modelled)."""
+        key, _ = KEYS[candidate.effect]
+        scale = dict(self.scale)
+        for fam in fit.families:
+            group = fam.quantity.removeprefix("pair_")
+            scale[group] *= float(np.sqrt(np.mean(fam.whitened**2)))
+        static, dynamic = self._data(fit.context["fold"])
+        graph, _ = gp._build(static, dynamic, fit.context["model"], scale, huber_k=None)
+        cov = marginal_covariances(graph, fit.values, [key], candidate.effect)[key]
         value, sigma = fit.values.atVector(key), np.sqrt(np.diag(cov))
         if key == gp.TIME_OFFSET:
             return {"dt_s": float(value[0])}, {"dt_s": float(sigma[0])}
-        return {"r_m": value.tolist()}, {"r_m": sigma.tolist()}
+        if key == gp.LEVER_ARM:
+            return {"r_m": value.tolist()}, {"r_m": sigma.tolist()}
+        diagonal, off = [0, 3, 5], [1, 2, 4]  # entries (00, 11, 22) and (01, 02, 12) of the symmetric S
+        return ({"scale": value[diagonal].tolist(), "shear": value[off].tolist(),
+                 "meaning": "v_imu0 = R (I + S) v_imu1, S symmetric: scale = diagonal, shear = off-diagonal"},
+                {"scale": sigma[diagonal].tolist(), "shear": sigma[off].tolist()})

@@ -61,10 +61,10 @@ class ImuIntrinsicsAudit:
                                                              ("gyro_misalignment", "gyro_motion")))
         else:
             raise ValueError(f"unknown base model {base!r} for system imu: choose 'bias' or 'standard'")
-        # held-out folds: contiguous blocks of poses (in time order); two halves when there are enough poses,
-        # else up to five blocks so every training set keeps enough poses for the full accelerometer model
+        # held-out folds: contiguous blocks of poses (in time order); two halves when there are many poses,
+        # else three to five blocks, so every training set keeps enough poses for the full accelerometer model
         n = len(self.problem.poses)
-        self.folds = 2 if n >= 20 else max(2, min(5, n // 2))
+        self.folds = 2 if n >= 40 else 3 if n >= 15 else max(2, min(5, n // 2))
         blocks = np.array_split(np.arange(n), self.folds)
         self._fold_poses = [[k for k in range(n) if k not in set(b)] for b in blocks]
 
@@ -133,8 +133,12 @@ class ImuIntrinsicsAudit:
         for key in built.values.keys():
             if fit.values.exists(key) and key not in (gi.ACCEL_M, gi.GYRO_M):
                 values.insert(key, _get(fit.values, key))
+            elif key in (gi.ACCEL_M, gi.GYRO_M):
+                values.insert(key, _get(built.values, key))  # overwritten below
             else:
-                values.insert(key, _get(built.values, key))
+                # a new block starts at its nominal value (zero slope, zero g-sensitivity): build_graph may
+                # already have fitted it in its accelerometer-only stage, and the score test must start at H0
+                values.insert(key, np.zeros_like(built.values.atVector(key)))
         # grown matrices: old free entries keep their fitted values, new ones start at nominal
         for key, old_keys, new_keys, nominal in (
                 (gi.ACCEL_M, old_spec.accel_keys, built.accel_keys, imu.upper_triangular_entries(np.eye(3))),
