@@ -370,7 +370,52 @@ def import_ansfl_quadrotor(path_dir) -> Recording:
     return Recording(path=None, sensors=sensors)
 
 
+# ------------------------------------------------------------------------------------ sunsided MPU-6050 (EUPL)
+
+def import_sunsided_mpu6050(scenario_dir) -> Recording:
+    """One scenario of sunsided/sensor-fusion set 2 (MPU-6050 with its temperature) as sensor ``imu0``.
+
+    Parameters
+    ----------
+    scenario_dir : str or Path
+        A scenario folder holding ``mpu6050.csv.gz`` (``sec, acc_*_g, gyro_*_dps, temp_C``).
+
+    Returns
+    -------
+    Recording
+        ``imu0`` in SI units (g -> 9.80665 m s^-2, deg/s -> rad/s) with the channel ``temperature [degC]``.
+        Upstream's gyro x axis counts clockwise (set-2 README); it is negated here so that gyro and
+        accelerometer share one right-handed frame.  EUPL-1.2 data: read in place, never copied into ``data/``.
+    """
+    folder = _require_dir(scenario_dir)
+    file = folder / "mpu6050.csv.gz"
+    table = _loadtxt(file, 8, delimiter=",", skiprows=1)
+    t_ns = _seconds_to_ns(table[:, 0], file, first_line=2)
+    accel_m_s2 = table[:, 1:4] * STANDARD_GRAVITY_M_S2
+    gyro_rad_s = np.radians(table[:, 4:7]) * np.array([-1.0, 1.0, 1.0])
+    # mean rate: the samples arrive in bursts (median spacing 2 ms, gaps up to 70 ms), ~99 Hz on average
+    rate_hz = (len(t_ns) - 1) * 1e9 / float(t_ns[-1] - t_ns[0])
+    n_static = _leading_static_samples(gyro_rad_s, rate_hz)
+    meta = {
+        "sensor_type": "imu",
+        "model": "InvenSense MPU-6050 breakout (sunsided/sensor-fusion set 2)",
+        "rate_hz": _sig(rate_hz),
+        "gravity_m_s2": STANDARD_GRAVITY_M_S2,
+        "accelerometer_noise_density": _white_noise_density(accel_m_s2[:n_static], rate_hz),
+        "gyroscope_noise_density": _white_noise_density(gyro_rad_s[:n_static], rate_hz),
+        "accelerometer_random_walk": 1.0e-3,
+        "gyroscope_random_walk": 1.0e-4,
+        "noise_source": (f"noise densities: std over the first {n_static / rate_hz:.3g} s / sqrt(rate_hz); "
+                         "random walks: assumed typical MEMS values, not measured"),
+        "axes": "gyro x negated from upstream (clockwise-positive there) to share the accelerometer's frame",
+        "source": f"sunsided_mpu6050_hmc5883l_marg/{folder.name}",
+    }
+    channels = {"temperature": (table[:, 7], "degC")}
+    return Recording(path=None, sensors={"imu0": imu_sensor("imu0", t_ns, gyro_rad_s, accel_m_s2, channels, meta)})
+
+
 IMPORTERS = {
+    "sunsided-mpu6050": import_sunsided_mpu6050,
     "imu-tk-xsens": import_imu_tk_xsens,
     "mpu6050-tomisuarez": import_mpu6050_tomisuarez,
     "ansfl-quadrotor": import_ansfl_quadrotor,
