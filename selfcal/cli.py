@@ -76,13 +76,13 @@ def _cmd_audit(args) -> None:
     rec = read_recording(args.recording)
     sensors = [name for name in (args.imu, args.imu1) if name] or None
     run = audit_recording(rec, args.system, args.base, sensors, progress=log.info)
-    for finding in run.result.findings:
+    for finding in run.to_json()["findings"]:
         print(f"found {finding['effect']} ({finding['target']}): RMS {finding['gain']['rms_before']:.4g} -> "
               f"{finding['gain']['rms_after']:.4g}, held-out {finding['gain']['heldout_rms_before']:.4g} -> "
               f"{finding['gain']['heldout_rms_after']:.4g}"
               + (" [ambiguous with " + ", ".join(r["effect"] for r in finding["ambiguous_with"]) + "]"
                  if finding.get("ambiguous_with") else ""))
-    if not run.result.findings:
+    if not run.to_json()["findings"]:
         print("no finding: the data give no significant evidence against the base model")
     if args.json:
         atomic_write_text(_output(args.json), json.dumps(run.to_json(), indent=1, default=_plain) + "\n")

@@ -122,7 +122,7 @@ def test_hidden_gauss_markov_bias_is_found_and_recovered_within_3_sigma():
     result = noise_audit(x, RATE_HZ, "accel")
 
     finding = result.finding
-    assert finding is not None and finding["effect"] == "bias_instability" and finding["quantity"] == "accel"
+    assert finding is not None and finding["effect"] == "bias_instability" and finding["target"] == "imu0/accel"
     json.dumps(finding, allow_nan=False)
     est, std = finding["estimate"], finding["std"]
     assert est["model"] == ["gauss_markov"] * 3

@@ -134,7 +134,9 @@ class ImuPairAudit:
         scale = dict(self.scale)
         for fam in fit.families:
             group = fam.quantity.removeprefix("pair_")
-            scale[group] *= float(np.sqrt(np.mean(fam.whitened**2)))
+            # filtered samples stay slightly correlated: inflate as the calibration does (effective sample size)
+            inflation = 1.0 if group == "static" else gp.correlation_inflation([fam.whitened])
+            scale[group] *= float(np.sqrt(np.mean(fam.whitened**2) * inflation))
         static, dynamic = self._data(fit.context["fold"])
         graph, _ = gp._build(static, dynamic, fit.context["model"], scale, huber_k=None)
         cov = marginal_covariances(graph, fit.values, [key], candidate.effect)[key]

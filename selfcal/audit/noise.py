@@ -302,8 +302,9 @@ class ModelFit:
     The residuals ``r_i = ln AVAR_hat_i - ln AVAR_model_i - m_i`` (``m_i``: mean of ``ln(chi2_nu / nu)``, module
     notes) are Gaussian with covariance ``C = S R S + f^2 I``: ``S = diag(s_i)`` the stds of ``ln(chi2_nu /
     nu)``, ``R`` the correlation of the overlapping estimates (:func:`oadev_correlation`), both for the noise
-    types of the model curve (:func:`model_alpha`), ``f`` a model-error term fitted with the parameters.  ``nll = r^T C^-1 r + ln det C`` is -2 log-likelihood (constants dropped),
-    ``chi2 = r^T C^-1 r``, ``bic = nll + k ln n`` over the ``n`` tau points (``k`` model parameters plus ``f``).
+    types of the model curve (:func:`model_alpha`), ``f`` a model-error term fitted with the parameters.
+    ``nll = r^T C^-1 r + ln det C`` is -2 log-likelihood (constants dropped), ``chi2 = r^T C^-1 r``,
+    ``bic = nll + k ln n`` over the ``n`` tau points (``k`` model parameters plus ``f``).
     ``std`` is from ``(J^T C^-1 J)^-1`` (J: derivatives of ``ln AVAR_model`` with respect to the log
     parameters; ``cov_log`` is that covariance), mapped to the parameters by the delta method; NaN for a
     parameter the curve does not constrain or that sits on a bound.
@@ -821,7 +822,8 @@ def _finding(axes: list[AxisNoise], sensor: str, quantity: str) -> dict:
     t = axes[0].curve.taus_s
     tb = axes[0].heldout_curve.taus_s
     return {
-        "effect": "bias_instability", "sensor": sensor, "quantity": quantity,
+        "effect": "bias_instability", "sensor": sensor, "quantity": quantity, "target": f"{sensor}/{quantity}",
+        "meaning": "bias wanders (random walk / Gauss-Markov): white-noise model too optimistic",
         "estimate": {k: [_nullable(v) if not isinstance(v, str) else v for v in vals] for k, vals in est.items()},
         "std": {k: [_nullable(v) for v in vals] for k, vals in std.items()},
         "evidence": {"diagnostic": "Allan deviation vs white-noise prediction", "statistic": float(lr),

@@ -92,7 +92,8 @@ def write_report(result: AuditResult, path, extras: dict | None = None) -> Path:
 def render_report(result: AuditResult, extras: dict | None = None) -> str:
     """The report's HTML text (see :func:`write_report`)."""
     extras = dict(extras or {})
-    parts = [_header(result, extras), _summary(result), _findings_table(result), _finding_sections(result),
+    parts = [_header(result, extras), _summary(result, extras.get("noise_findings", [])), _findings_table(result),
+             _finding_sections(result),
              _diagnostics_section(result.final_fit), _history_section(result)]
     if extras.get("noise"):
         parts.append(_noise_section(extras["noise"]))
@@ -328,8 +329,9 @@ def _header(result: AuditResult, extras: dict) -> str:
     return f"<h1>Audit report: {html.escape(result.system)}</h1>\n<table class=\"meta\">{table}</table>"
 
 
-def _summary(result: AuditResult) -> str:
-    """One paragraph: per residual family, what the base model leaves and what the accepted effects remove."""
+def _summary(result: AuditResult, noise_findings=()) -> str:
+    """One paragraph: per residual family, what the base model leaves and what the accepted effects remove;
+    then the noise-model findings of the Allan analysis, if any."""
     base_desc = _base_description(result)
     by_target: dict[str, list[int]] = {}
     for i, finding in enumerate(result.findings):
@@ -361,7 +363,15 @@ def _summary(result: AuditResult) -> str:
                         for f in result.final_fit.families)
         sentences.append(f"No candidate effect is significant and predictive: the data give no evidence against the "
                          f"{html.escape(base_desc)} model (residual RMS: {rms}). That is a valid answer, not a "
-                         "failure.")
+                         "failure." if not noise_findings else
+                         f"No deterministic effect is significant and predictive against the {html.escape(base_desc)} "
+                         f"model (residual RMS: {rms}).")
+    for finding in noise_findings:
+        gain = finding.get("gain", {})
+        sentences.append(f"The noise model is too optimistic: the Allan analysis names <b>{html.escape(finding['effect'])}"
+                         f"</b> on {html.escape(finding.get('target', ''))} (white-noise-only prediction off by "
+                         f"{num(100 * gain.get('rms_before', 0), 3)} % RMS over the tau range, extended model "
+                         f"{num(100 * gain.get('rms_after', 0), 3)} %; see Noise).")
     out = f"<div class=\"summary\"><p>{' '.join(sentences)}</p></div>"
     return out + "".join(_ambiguity_box(f) for f in result.findings if f.get("ambiguous_with"))
 

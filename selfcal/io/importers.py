@@ -414,7 +414,32 @@ def import_sunsided_mpu6050(scenario_dir) -> Recording:
     return Recording(path=None, sensors={"imu0": imu_sensor("imu0", t_ns, gyro_rad_s, accel_m_s2, channels, meta)})
 
 
+# ---------------------------------------------------------------------------------- ADIS16405 (CC BY-NC-SA)
+
+def import_adis16405_static(npz_file) -> Recording:
+    """One 2.78 h static run of imudata (SMAC-Group) as sensor ``imu0``; read in place, never shipped.
+
+    The npz holds int16 counts with their LSBs (gyro 0.05 deg/s, accel 3.33 mg); no timestamps upstream:
+    uniform 100 Hz from t = 0.
+    """
+    file = _require_file(npz_file)
+    try:
+        with np.load(file) as z:
+            gyro = z["gyro_counts"] * float(z["gyro_lsb_deg_s"])
+            accel = z["acc_counts"] * float(z["acc_lsb_g"])
+            rate_hz = float(z["rate_hz"])
+    except (OSError, KeyError, ValueError) as err:
+        raise RecordingError(f"{file}: not an ADIS16405 npz ({_one_line(err)})") from None
+    t_ns = np.arange(len(gyro), dtype=np.int64) * int(round(1e9 / rate_hz))
+    meta = {"sensor_type": "imu", "model": "Analog Devices ADIS16405", "rate_hz": rate_hz,
+            "gravity_m_s2": STANDARD_GRAVITY_M_S2, "timestamps": "none upstream: uniform at rate_hz from t = 0",
+            "source": f"imudata_adis16405_static/{file.name}"}
+    return Recording(path=None, sensors={"imu0": imu_sensor("imu0", t_ns, np.radians(gyro),
+                                                            accel * STANDARD_GRAVITY_M_S2, meta=meta)})
+
+
 IMPORTERS = {
+    "adis16405-static": import_adis16405_static,
     "sunsided-mpu6050": import_sunsided_mpu6050,
     "imu-tk-xsens": import_imu_tk_xsens,
     "mpu6050-tomisuarez": import_mpu6050_tomisuarez,

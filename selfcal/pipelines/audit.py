@@ -9,6 +9,7 @@ import numpy as np
 from selfcal.audit.engine import AuditResult, run_audit
 from selfcal.audit.imu_pair_system import ImuPairAudit
 from selfcal.audit.imu_static_system import ImuStaticAudit
+from selfcal.audit.noise import noise_audit
 from selfcal.audit.imu_system import ImuIntrinsicsAudit, simulate_like
 from selfcal.io.recording import Recording
 from selfcal.models import imu
@@ -22,17 +23,35 @@ SYSTEMS = ("imu", "imu-pair")
 class AuditRun:
     result: AuditResult
     simulation: list[dict] = field(default_factory=list)  # measured against simulated, per residual family
+    noise: list = field(default_factory=list)  # NoiseAuditResult per quantity (static logs)
 
     def to_json(self) -> dict:
         out = self.result.to_json()
+        noise_findings = [n.finding for n in self.noise if n.finding]
+        out["findings"] = out["findings"] + noise_findings
+        out["final_model"] = out["final_model"] + sorted({f["effect"] for f in noise_findings})
         if self.simulation:
             out["measured_vs_simulated"] = self.simulation
+        if self.noise:
+            out["noise"] = [{"sensor": n.sensor, "quantity": n.quantity, "axes": n.summary()} for n in self.noise]
         return out
 
-    def report_extras(self, recording: str) -> dict:
+    def report_extras(self, recording: str, figure_dir=None) -> dict:
         extras = {"recording": recording}
         if self.simulation:
             extras["simulation"] = self.simulation
+        if self.noise:
+            extras["noise_findings"] = [n.finding for n in self.noise if n.finding]
+            import tempfile
+            from pathlib import Path
+
+            from selfcal.audit.noise import plot_allan
+            folder = Path(figure_dir or tempfile.mkdtemp(prefix="selfcal-allan-"))
+            extras["noise"] = [{
+                "title": f"Allan deviation of {n.sensor}/{n.quantity}: measured against the white-noise model "
+                         f"and the extended one ({'accepted' if n.finding else 'not accepted'})",
+                "png_path": str(plot_allan(n, folder / f"allan_{n.sensor}_{n.quantity}.png")),
+                "table": n.summary()} for n in self.noise]
         return extras
 
 
@@ -61,10 +80,17 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
     run = AuditRun(result)
     if isinstance(audit_system, ImuIntrinsicsAudit):
         run.simulation = measured_vs_simulated(audit_system, result, simulate_seed)
+    if isinstance(audit_system, ImuStaticAudit) and data.t_s[-1] >= NOISE_AUDIT_MIN_S:
+        for quantity, samples, key in (("gyro", data.gyro_rad_s, "gyroscope_noise_density"),
+                                       ("accel", data.accel_m_s2, "accelerometer_noise_density")):
+            if progress:
+                progress(f"Allan analysis of {data.name}/{quantity}")
+            run.noise.append(noise_audit(samples, data.rate_hz, quantity, sensor=data.name))
     return run
 
 
 STATIC_LOG_MAX_TILT_DEG = 2.0
+NOISE_AUDIT_MIN_S = 300.0  # Allan analysis needs taus of minutes to see a bias wander
 
 
 def is_static_log(data) -> bool:
