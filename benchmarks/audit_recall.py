@@ -54,8 +54,8 @@ class Planted:
 
     effect: str
     target: str
-    key: str
-    truth: np.ndarray
+    key: str | None  # None: the effect must be named, its parameter has no simple truth to compare with
+    truth: np.ndarray | None
     rival: Planted | None = None  # an equivalent explanation the audit may name instead, with ambiguity
 
 
@@ -181,13 +181,18 @@ def null_pair(seed):
     return Case("null: pair, biases only", pair(seed)[1])
 
 
-def null_pair_realistic(seed):
-    return Case("null: pair, scale + misalignment", pair(seed, realistic=True)[1])
+def relative_gains(seed):
+    """Each IMU with its own scale and misalignment: their difference is real and belongs to the relative-gain
+    entries (its symmetric part; the antisymmetric rest goes into R), never to a lever arm or a clock offset."""
+    return Case("relative gains (pair: own scale + misalignment)", pair(seed, realistic=True)[1],
+                [Planted("accel_relative_gain", "imu1/pair_accel", None, None),
+                 Planted("gyro_relative_gain", "imu1/pair_gyro", None, None)])
 
 
 EFFECT_TYPES: list[Callable[[int], Case]] = [g_sensitivity, temperature_gyro, temperature_accel, fan_accel, fan_gyro,
-                                             two_single, heater_ramp, time_offset, lever_arm, two_pair]
-NULL_TYPES: list[Callable[[int], Case]] = [null_single, noise_channel, null_pair, null_pair_realistic]
+                                             two_single, heater_ramp, time_offset, lever_arm, two_pair,
+                                             relative_gains]
+NULL_TYPES: list[Callable[[int], Case]] = [null_single, noise_channel, null_pair]
 
 
 # --- scoring --------------------------------------------------------------------------------------------------
@@ -220,6 +225,8 @@ def score(case: Case) -> dict:
         if hit is None:
             continue
         matched.add(hit)
+        if used.key is None:
+            continue
         z_finding.append(z_scores(findings[hit]["estimate"], findings[hit]["std"], used))
         estimate, std = case.system.estimate(result.final_fit, accepted[hit])
         z_final.append(z_scores(estimate, std, used))
