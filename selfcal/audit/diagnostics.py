@@ -150,7 +150,9 @@ def diagnose(family: ResidualFamily) -> list[dict]:
         ``mean`` (physical), ``mean_p`` (t-test of zero mean); ``rms`` (physical);
         ``ljung_box_q``, ``ljung_box_lags``, ``ljung_box_p``; ``normality_test``, ``normality_p``;
         ``linear_coordinate``, ``linear_slope`` (physical unit per coordinate unit), ``linear_p``;
-        ``anova_coordinate``, ``anova_bins``, ``anova_p``; ``n_coordinates``.
+        ``anova_coordinate``, ``anova_bins``, ``anova_p``; ``n_coordinates``;
+        ``period_s``, ``period_fap``: the strongest periodic term in time (Lomb–Scargle, uneven sampling) and
+        its false-alarm probability (NaN without a ``time_s`` coordinate or with fewer than 16 residuals).
         ``linear_p`` and ``anova_p`` belong to the coordinate with the smallest p-value and are
         Bonferroni-adjusted over the ``n_coordinates`` tried (``min(1, m p)``).  NaN where a test cannot run.
     """
@@ -175,6 +177,9 @@ def diagnose(family: ResidualFamily) -> list[dict]:
         anova = _strongest(coords, lambda c: binned_anova(w, c)[0])
         slope = linear_dependence(x, coords[linear[0]])[0] if linear[0] else float("nan")
         bins = binned_anova(w, coords[anova[0]])[1] if anova[0] else 0
+        period = (float("nan"), float("nan"))
+        if TIME_COORDINATE in coords and finite.sum() >= 16 and np.ptp(coords[TIME_COORDINATE]) > 0:
+            period = dominant_period(coords[TIME_COORDINATE][finite], w[finite])
         out.append({
             "family": family.label, "component": name, "unit": family.unit, "n": int(finite.sum()),
             "mean": float(np.nanmean(x)) if n else float("nan"), "mean_p": mean_p,
@@ -184,6 +189,7 @@ def diagnose(family: ResidualFamily) -> list[dict]:
             "linear_coordinate": linear[0], "linear_slope": slope, "linear_p": linear[1],
             "anova_coordinate": anova[0], "anova_bins": bins, "anova_p": anova[1],
             "n_coordinates": len(coords),
+            "period_s": period[0], "period_fap": period[1],
         })
     return out
 

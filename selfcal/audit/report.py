@@ -665,7 +665,7 @@ def _diagnostics_section(fit: Fit) -> str:
     rows, n_p = [], 0
     for fam in fit.families:
         for d in diagnose(fam):
-            n_p += 5
+            n_p += 6
             unit = unit_html(d["unit"])
             lin = (f"<td>{html.escape(d['linear_coordinate'] or '–')}</td>"
                    f"<td class=\"num\">{num(d['linear_slope'], 3)}</td>" + _p_cell(d["linear_p"]))
@@ -676,20 +676,23 @@ def _diagnostics_section(fit: Fit) -> str:
                         + _p_cell(d["mean_p"]) + f"<td class=\"num\">{num(d['rms'], 3)} {unit}</td>"
                         + _p_cell(d["ljung_box_p"], f"h={d['ljung_box_lags']}")
                         + _p_cell(d["normality_p"], "SW" if d["normality_test"] == "shapiro" else "DP")
-                        + lin + anova + "</tr>")
+                        + lin + anova
+                        + f"<td class=\"num\">{num(d['period_s'], 3)}</td>" + _p_cell(d["period_fap"]) + "</tr>")
     head = ("<tr><th rowspan=\"2\">family</th><th rowspan=\"2\">comp.</th><th rowspan=\"2\">n</th>"
             "<th colspan=\"2\">mean (t-test p)</th><th rowspan=\"2\">RMS</th><th rowspan=\"2\">Ljung-Box p</th>"
             "<th rowspan=\"2\">normality p</th><th colspan=\"3\">strongest linear dependence</th>"
-            "<th colspan=\"2\">strongest binned (ANOVA) dependence</th></tr>"
+            "<th colspan=\"2\">strongest binned (ANOVA) dependence</th>"
+            "<th colspan=\"2\">periodic term in time</th></tr>"
             "<tr><th>mean</th><th>p</th><th>coordinate</th>"
             "<th>slope<br><span class=\"small\">per coord. unit</span></th><th>p (adj.)</th>"
-            "<th>coordinate</th><th>p (adj.)</th></tr>")
+            "<th>coordinate</th><th>p (adj.)</th><th>period [s]</th><th>false-alarm p</th></tr>")
     return ("<h2>Residual diagnostics of the final model</h2>\n"
             "<p class=\"small\">What the final model still leaves. Tests run on the whitened residuals (scale-free); "
             "mean, RMS and slope are physical. Ljung-Box on the time-ordered residuals (h lags); normality: "
             "D'Agostino-Pearson (DP, n &ge; 8) or Shapiro-Wilk (SW); dependence: the coordinate with the smallest "
             "p-value, Bonferroni-adjusted over the coordinates tried; ANOVA over quantile bins catches a "
-            "dependence a straight line misses. Shaded: p &lt; 0.01 (amber), p &lt; 0.001 (red). With "
+            "dependence a straight line misses; the periodic term is the strongest Lomb–Scargle period of the "
+            "residual in time with Baluev's false-alarm probability. Shaded: p &lt; 0.01 (amber), p &lt; 0.001 (red). With "
             f"{n_p} p-values here, about {num(0.01 * n_p, 2)} amber cells are expected from noise alone.</p>\n"
             f"<table>{head}{''.join(rows)}</table>")
 
