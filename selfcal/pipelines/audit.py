@@ -24,6 +24,7 @@ class AuditRun:
     result: AuditResult
     simulation: list[dict] = field(default_factory=list)  # measured against simulated, per residual family
     noise: list = field(default_factory=list)  # NoiseAuditResult per quantity (static logs)
+    diagnostics: dict = field(default_factory=dict)  # system-level diagnostics (e.g. the pair's correlation lag)
 
     def to_json(self) -> dict:
         out = self.result.to_json()
@@ -34,6 +35,8 @@ class AuditRun:
             out["measured_vs_simulated"] = self.simulation
         if self.noise:
             out["noise"] = [{"sensor": n.sensor, "quantity": n.quantity, "axes": n.summary()} for n in self.noise]
+        if self.diagnostics:
+            out["diagnostics"] = self.diagnostics
         return out
 
     def report_extras(self, recording: str, figure_dir=None) -> dict:
@@ -78,6 +81,11 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
         raise ValueError(f"unknown system {system!r}; known: {', '.join(SYSTEMS)}")
     result = run_audit(audit_system, progress=progress)
     run = AuditRun(result)
+    if isinstance(audit_system, ImuPairAudit):
+        run.diagnostics["cross_correlation_lag_s"] = {
+            "value": audit_system.initial_dt_s,
+            "meaning": "delay maximising the correlation of |w| of the two IMUs (rotation-invariant): the "
+                       "model-free estimate of t_imu0 - t_imu1, to compare with a time_offset finding"}
     if isinstance(audit_system, ImuIntrinsicsAudit):
         run.simulation = measured_vs_simulated(audit_system, result, simulate_seed)
     if isinstance(audit_system, ImuStaticAudit) and data.t_s[-1] >= NOISE_AUDIT_MIN_S:
