@@ -149,3 +149,44 @@ class ImuPairAudit:
         return ({"scale": value[diagonal].tolist(), "shear": value[off].tolist(),
                  "meaning": "v_imu0 = R (I + S) v_imu1, S symmetric: scale = diagonal, shear = off-diagonal"},
                 {"scale": sigma[diagonal].tolist(), "shear": sigma[off].tolist()})
+
+
+def simulate_pair_like(system: ImuPairAudit, fit: Fit, seed: int, noise_fit: Fit | None = None) -> ImuPairAudit:
+    """The recording's own scenario re-simulated with the pair model of ``fit``.
+
+    imu0's measured (filtered) signals are kept as the truth of the motion; imu1's are regenerated from them
+    through the fitted relation (rotation, relative gains and offsets, lever arm, clock offset) at imu1's own
+    sample times, plus white noise at the level the residuals of ``noise_fit`` show (default ``fit``; pass the
+    final fit, whose residual is the best estimate of the sensors' noise).  The base model's simulation then says
+    what residual the base model expects; the final model's, whether the extension explains the measurement.
+    """
+    rng = np.random.default_rng(seed)
+    values, model = fit.values, fit.context["model"]
+    R = values.atRot3(gp.ROTATION).matrix()
+    dt = values.atVector(gp.TIME_OFFSET)[0] if model.time_offset else 0.0
+    r = values.atVector(gp.LEVER_ARM) if model.lever_arm else np.zeros(3)
+    d_a = values.atVector(gp.ACCEL_OFFSET) if values.exists(gp.ACCEL_OFFSET) else np.zeros(3)
+    d_g = values.atVector(gp.GYRO_OFFSET) if values.exists(gp.GYRO_OFFSET) else np.zeros(3)
+    G_a = fimu.symmetric_gain(values.atVector(gp.ACCEL_GAIN)) if model.accel_gain else np.eye(3)
+    G_g = fimu.symmetric_gain(values.atVector(gp.GYRO_GAIN)) if model.gyro_gain else np.eye(3)
+    rms = {fam.quantity.removeprefix("pair_"): fam.rms for fam in (noise_fit or fit).families}
+    d = system.dynamic
+    t1 = d.gyro1.t_s
+    inside = (t1 + dt > d.t0_s[0]) & (t1 + dt < d.t0_s[-1])
+    t1 = t1[inside]
+    w0, w_dot0 = fimu.Signal(d.t0_s, d.gyro0), fimu.Signal(d.t0_s, d.gyro_rate_dot0)
+    a0 = fimu.Signal(d.t0_s, d.accel0)
+    w, w_dot = w0.at(t1 + dt)[0], w_dot0.at(t1 + dt)[0]
+    f1_in_0 = a0.at(t1 + dt)[0] + np.einsum("nij,j->ni", imu.lever_arm_jacobian(w, w_dot), r)
+    to_imu1_g, to_imu1_a = np.linalg.inv(R @ G_g), np.linalg.inv(R @ G_a)
+    # each pair residual carries both IMUs' noise: give imu1 the whole observed level (imu0's is in its data)
+    gyro1 = (w - d_g) @ to_imu1_g.T + rng.normal(0, rms.get("gyro", 0.0) / np.sqrt(3), (len(t1), 3))
+    accel1 = (f1_in_0 - d_a) @ to_imu1_a.T + rng.normal(0, rms.get("accel", 0.0) / np.sqrt(3), (len(t1), 3))
+    dynamic = replace(d, gyro1=fimu.Signal(t1, gyro1), accel1=fimu.Signal(t1, accel1))
+    static = [replace(p, accel1=to_imu1_a @ (p.accel0 - d_a) + rng.normal(0, p.sigma)) for p in system.static]
+    twin = object.__new__(ImuPairAudit)
+    twin.__dict__.update(system.__dict__)
+    twin.dynamic, twin.static = dynamic, static
+    half = 0.5 * (dynamic.t0_s[0] + dynamic.t0_s[-1])
+    twin._halves = [dynamic.t0_s < half, dynamic.t0_s >= half]
+    return twin

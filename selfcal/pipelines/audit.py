@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from selfcal.audit.engine import AuditResult, run_audit
-from selfcal.audit.imu_pair_system import ImuPairAudit
+from selfcal.audit.imu_pair_system import ImuPairAudit, simulate_pair_like
 from selfcal.audit.imu_static_system import ImuStaticAudit
 from selfcal.audit.noise import noise_audit
 from selfcal.audit.imu_system import ImuIntrinsicsAudit, simulate_like
@@ -86,8 +87,12 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
             "value": audit_system.initial_dt_s,
             "meaning": "delay maximising the correlation of |w| of the two IMUs (rotation-invariant): the "
                        "model-free estimate of t_imu0 - t_imu1, to compare with a time_offset finding"}
-    if isinstance(audit_system, ImuIntrinsicsAudit):
-        run.simulation = measured_vs_simulated(audit_system, result, simulate_seed)
+    if isinstance(audit_system, (ImuIntrinsicsAudit, ImuPairAudit)):
+        if isinstance(audit_system, ImuIntrinsicsAudit):
+            simulate = simulate_like  # noise from the static samples' own scatter
+        else:  # the pair has no independent noise level: the final model's residual is its best estimate
+            simulate = partial(simulate_pair_like, noise_fit=result.final_fit)
+        run.simulation = measured_vs_simulated(audit_system, result, simulate, simulate_seed)
     if isinstance(audit_system, ImuStaticAudit) and data.t_s[-1] >= NOISE_AUDIT_MIN_S:
         for quantity, samples, key in (("gyro", data.gyro_rad_s, "gyroscope_noise_density"),
                                        ("accel", data.accel_m_s2, "accelerometer_noise_density")):
@@ -114,16 +119,17 @@ def is_static_log(data) -> bool:
     return bool(np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) < STATIC_LOG_MAX_TILT_DEG)
 
 
-def measured_vs_simulated(system: ImuIntrinsicsAudit, result: AuditResult, seed: int) -> list[dict]:
-    """Residual RMS per family: measured vs the recording's scenario simulated with the base and final models.
+def measured_vs_simulated(system, result: AuditResult, simulate, seed: int) -> list[dict]:
+    """Residual RMS per family and axis: measured vs the recording's scenario simulated with the base and final
+    models.
 
     Both simulations are analysed with the base model as the measurement was: the base model's own simulation
     shows what it expects to leave; the final model's simulation shows whether the extension reproduces what
     the measurement really left.
     """
     base_effects, final_effects = result.base_fit.effects, result.final_effects
-    sim_base = simulate_like(system, result.base_fit, seed)
-    sim_final = simulate_like(system, result.final_fit, seed)
+    sim_base = simulate(system, result.base_fit, seed)
+    sim_final = simulate(system, result.final_fit, seed)
     columns = {"measured_base_fit": result.base_fit,
                "simulated_base_model_base_fit": sim_base.fit(base_effects),
                "simulated_final_model_base_fit": sim_final.fit(base_effects),
@@ -131,9 +137,11 @@ def measured_vs_simulated(system: ImuIntrinsicsAudit, result: AuditResult, seed:
                "simulated_final_model_final_fit": sim_final.fit(final_effects)}
     table = []
     for fam in result.base_fit.families:
-        row = {"family": fam.label, "unit": fam.unit}
-        for name, fit in columns.items():
-            other = fit.family(fam.quantity, fam.sensor)
-            row[name] = other.rms if other is not None else None
-        table.append(row)
+        axes = ["|f| - g"] if fam.physical.shape[1] == 1 else ["x", "y", "z"][:fam.physical.shape[1]]
+        for j, axis in enumerate(axes):
+            row = {"family": fam.label, "axis": axis, "unit": fam.unit}
+            for name, fit in columns.items():
+                other = fit.family(fam.quantity, fam.sensor)
+                row[name] = float(np.sqrt(np.mean(other.physical[:, j] ** 2))) if other is not None else None
+            table.append(row)
     return table
