@@ -45,9 +45,12 @@ class ImuPairAudit:
         half = 0.5 * (self.dynamic.t0_s[0] + self.dynamic.t0_s[-1])
         self._halves = [self.dynamic.t0_s < half, self.dynamic.t0_s >= half]
         self.scale = {g: 1.0 for g in gp.GROUPS}
-        base = self.fit(())  # per-group noise level from the base fit's residuals (kept for every later fit)
+        # per-group noise level from the residuals of the richest model (every catalog effect in), kept for every
+        # later fit: the base fit's residuals would still hold the unmodelled effects and down-weight the very
+        # group that shows them (as Mallows' Cp takes sigma from the full model)
+        full = self.fit(tuple(self.candidates()))
         self.scale = {fam.quantity.removeprefix("pair_"): max(float(np.sqrt(np.mean(fam.whitened**2))), 1e-6)
-                      for fam in base.families}
+                      for fam in full.families}
         for g in gp.GROUPS:
             self.scale.setdefault(g, 1.0)
 
