@@ -30,6 +30,17 @@ KEYS = {"time_offset": (gp.TIME_OFFSET, 1), "lever_arm": (gp.LEVER_ARM, 3),
         "accel_relative_gain": (gp.ACCEL_GAIN, 6), "gyro_relative_gain": (gp.GYRO_GAIN, 6)}
 
 
+def pair_parameters(values: gtsam.Values, model: gp.PairModel):
+    """(R, dt, r, accel offset, gyro offset, accel gain I + S, gyro gain I + S), nominal where not in the model."""
+    return (values.atRot3(gp.ROTATION).matrix(),
+            values.atVector(gp.TIME_OFFSET)[0] if model.time_offset else 0.0,
+            values.atVector(gp.LEVER_ARM) if model.lever_arm else np.zeros(3),
+            values.atVector(gp.ACCEL_OFFSET) if values.exists(gp.ACCEL_OFFSET) else np.zeros(3),
+            values.atVector(gp.GYRO_OFFSET) if values.exists(gp.GYRO_OFFSET) else np.zeros(3),
+            fimu.symmetric_gain(values.atVector(gp.ACCEL_GAIN)) if model.accel_gain else np.eye(3),
+            fimu.symmetric_gain(values.atVector(gp.GYRO_GAIN)) if model.gyro_gain else np.eye(3))
+
+
 class ImuPairAudit:
     name = "imu-pair"
     folds = 2
@@ -105,13 +116,7 @@ class ImuPairAudit:
         return self._families(fit.values, fit.context["model"], static, dynamic)
 
     def _families(self, values, model: gp.PairModel, static, dynamic) -> list[ResidualFamily]:
-        R = values.atRot3(gp.ROTATION).matrix()
-        dt = values.atVector(gp.TIME_OFFSET)[0] if model.time_offset else 0.0
-        r = values.atVector(gp.LEVER_ARM) if model.lever_arm else np.zeros(3)
-        d_a = values.atVector(gp.ACCEL_OFFSET) if values.exists(gp.ACCEL_OFFSET) else np.zeros(3)
-        d_g = values.atVector(gp.GYRO_OFFSET) if values.exists(gp.GYRO_OFFSET) else np.zeros(3)
-        G_a = fimu.symmetric_gain(values.atVector(gp.ACCEL_GAIN)) if model.accel_gain else np.eye(3)
-        G_g = fimu.symmetric_gain(values.atVector(gp.GYRO_GAIN)) if model.gyro_gain else np.eye(3)
+        R, dt, r, d_a, d_g, G_a, G_g = pair_parameters(values, model)
         t = dynamic.t0_s
         coords = {"time_s": t, "angular_rate": np.linalg.norm(dynamic.gyro0, axis=1),
                   "angular_acceleration": np.linalg.norm(dynamic.gyro_rate_dot0, axis=1)}
@@ -165,13 +170,7 @@ def simulate_pair_like(system: ImuPairAudit, fit: Fit, seed: int, noise_fit: Fit
     """
     rng = np.random.default_rng(seed)
     values, model = fit.values, fit.context["model"]
-    R = values.atRot3(gp.ROTATION).matrix()
-    dt = values.atVector(gp.TIME_OFFSET)[0] if model.time_offset else 0.0
-    r = values.atVector(gp.LEVER_ARM) if model.lever_arm else np.zeros(3)
-    d_a = values.atVector(gp.ACCEL_OFFSET) if values.exists(gp.ACCEL_OFFSET) else np.zeros(3)
-    d_g = values.atVector(gp.GYRO_OFFSET) if values.exists(gp.GYRO_OFFSET) else np.zeros(3)
-    G_a = fimu.symmetric_gain(values.atVector(gp.ACCEL_GAIN)) if model.accel_gain else np.eye(3)
-    G_g = fimu.symmetric_gain(values.atVector(gp.GYRO_GAIN)) if model.gyro_gain else np.eye(3)
+    R, dt, r, d_a, d_g, G_a, G_g = pair_parameters(values, model)
     rms = {fam.quantity.removeprefix("pair_"): fam.rms for fam in (noise_fit or fit).families}
     d = system.dynamic
     t1 = d.gyro1.t_s
