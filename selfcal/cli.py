@@ -7,6 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 log = logging.getLogger("selfcal")
@@ -103,6 +104,21 @@ def _plain(obj):
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def _cmd_smooth_ship(args) -> None:
+    from selfcal.io.atomic import atomic_write_text
+    from selfcal.io.recording import read_recording
+    from selfcal.pipelines.ship import smooth_ship, tum_text
+    rec = read_recording(args.recording)
+    est = smooth_ship(rec, online=args.online, remove_known_acceleration=not args.keep_known_acceleration,
+                      imu_name=args.imu)
+    print(f"{len(est.t_s)} attitudes over {est.t_s[-1] - est.t_s[0]:.0f} s in {est.seconds:.1f} s "
+          f"({'iSAM2 online' if args.online else 'batch'}); final gyro bias "
+          f"{np.degrees(est.gyro_bias[-1]) * 3600} deg/h")
+    if args.out:
+        atomic_write_text(_output(args.out), tum_text(est, int(rec.sensors[args.imu].t_ns[0])))
+        print(f"trajectory: {args.out}")
+
+
 def _cmd_import(args) -> None:
     from selfcal.io.importers import IMPORTERS
     from selfcal.io.recording import write_recording
@@ -152,6 +168,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="findings in the audit JSON contract")
     p.add_argument("--report", help="HTML report with plots")
     p.set_defaults(run=_cmd_audit)
+
+    smooth = verbs.add_parser("smooth", help="smooth a recording offline (or replay it online with --online)")
+    smoothers = smooth.add_subparsers(dest="system", required=True, parser_class=_Parser)
+    p = smoothers.add_parser("ship", help="vessel attitude and gyro drift from gyro + accelerometer tilt")
+    p.add_argument("recording")
+    p.add_argument("--imu", default="imu0")
+    p.add_argument("--online", action="store_true", help="iSAM2, keyframe by keyframe, as a live system would")
+    p.add_argument("--keep-known-acceleration", action="store_true",
+                   help="do not subtract surge and centripetal acceleration from speed log / GPS and yaw rate")
+    p.add_argument("--out", help="TUM trajectory file (t x y z qx qy qz qw)")
+    p.set_defaults(run=_cmd_smooth_ship)
 
     p = verbs.add_parser("import", help="convert a public dataset into a recording")
     p.add_argument("kind", help="dataset kind: imu-tk-xsens, mpu6050-tomisuarez, ansfl-quadrotor")

@@ -43,7 +43,7 @@ class ShipGraphOptions:
     tilt_sigma_rad: float = 0.01  # floor: accelerometer noise and unmodelled small accelerations
     disturbance_gain: float = 3.0  # tilt sigma grows by this times ||f| - g| / g
     remove_known_acceleration: bool = True
-    initial_bias_sigma_rad_s: float = 0.01
+    initial_bias_sigma_rad_s: float = 0.1  # uncalibrated MEMS gyros start degrees per second off
 
 
 @dataclass
@@ -88,8 +88,9 @@ class ShipSmoother:
         roll, pitch = ship.tilt_from_specific_force(self.f[self.keyframe_index[k]])
         return gtsam.Rot3.Ypr(0.0, float(pitch), float(roll))
 
-    def factors_for(self, k: int, values_estimate=None):
-        """New factors and initial values that keyframe k brings (k = 0: priors)."""
+    def factors_for(self, k: int, values_estimate=None, online: bool = False):
+        """New factors and initial values that keyframe k brings (k = 0: priors); ``values_estimate`` holds
+        the current estimate (the bias to preintegrate about, and online the attitude to propagate)."""
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         i = self.keyframe_index[k]
         up = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
@@ -119,8 +120,11 @@ class ShipSmoother:
                                                 gtsam.noiseModel.Isotropic.Sigma(
                                                     3, self.inputs.gyro_random_walk * np.sqrt(dt))))
             values.insert(bias_key, bias_hat)
-        R_prev = values_estimate.atRot3(R_KEY(k - 1)) if values_estimate is not None else self._initial_rotation(k)
-        values.insert(R_KEY(k), R_prev.compose(pim.deltaRij()))
+        if online:  # propagate the latest estimate with the gyro
+            values.insert(R_KEY(k), values_estimate.atRot3(R_KEY(k - 1)).compose(pim.deltaRij()))
+        else:  # batch: start every keyframe at its accelerometer tilt; a gyro chain from an unknown bias of
+            # degrees per second would wrap around before LM could pull it back
+            values.insert(R_KEY(k), self._initial_rotation(k))
         return graph, values
 
     def batch(self) -> ShipEstimate:
@@ -144,7 +148,7 @@ class ShipSmoother:
         current = gtsam.Values()
         rolls, pitches, yaws, biases = [], [], [], []
         for k in range(len(self.keyframe_index)):
-            g, v = self.factors_for(k, current if k else None)
+            g, v = self.factors_for(k, current if k else None, online=True)
             isam.update(g, v)
             current = isam.calculateEstimate()
             ypr = current.atRot3(R_KEY(k)).ypr()
