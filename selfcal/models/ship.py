@@ -15,7 +15,11 @@ import numpy as np
 
 
 def tilt_from_specific_force(f_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Roll and pitch (rad) of the total force direction, ``f_S`` (N, 3) or (3,) in m s^-2."""
+    """Roll and pitch (rad) of the total force direction, ``f_S`` (N, 3) or (3,), any unit.
+
+    ``Rz^T`` leaves ``(0, 0, g)`` unchanged, ``Ry(pitch)^T`` gives ``g (-sin pitch, 0, cos pitch)``, ``Rx(roll)^T``
+    gives ``f = g (-sin pitch, sin roll cos pitch, cos roll cos pitch)``; pitch lies in [-pi/2, pi/2].
+    """
     f = np.asarray(f_S, dtype=float)
     roll = np.arctan2(f[..., 1], f[..., 2])
     pitch = np.arctan2(-f[..., 0], np.hypot(f[..., 1], f[..., 2]))
