@@ -63,19 +63,18 @@ def run_scenario(kind: str, duration_s: float, remove_known: bool, seed: int = 3
 
 
 def plot(traces, path):
+    """Roll error against the truth over the whole voyage, both methods, one panel per scenario."""
     from matplotlib.figure import Figure
-    fig = Figure(figsize=(12, 3.2 * len(traces)))
+    fig = Figure(figsize=(12, 3.0 * len(traces)))
     for row, (name, (t, patent, batch, online, scenario)) in enumerate(traces.items()):
         ax = fig.add_subplot(len(traces), 1, row + 1)
-        true_roll = np.degrees(scenario.truth_attitude(t)[0])
-        window = t < t[0] + 120
-        ax.plot(t[window], true_roll[window], "k", lw=2, label="truth")
-        ax.plot(t[window], np.degrees(patent.roll[window]), label="patent filter")
-        w = batch.t_s < t[0] + 120
-        ax.plot(batch.t_s[w], np.degrees(batch.roll[w]), label="graph (batch)")
-        ax.plot(online.t_s[w], np.degrees(online.roll[w]), ":", label="graph (iSAM2)")
-        ax.set_title(f"{name}: roll, first 2 minutes")
-        ax.set_ylabel("roll [deg]")
+        ax.plot(t, np.degrees(patent.roll - scenario.truth_attitude(t)[0]), lw=0.6, label="patent filter")
+        for est, style, label in ((online, ":", "graph (iSAM2, online)"), (batch, "-", "graph (batch)")):
+            ax.plot(est.t_s, np.degrees(est.roll - scenario.truth_attitude(est.t_s)[0]), style, lw=0.8, label=label)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylim(-0.6, 0.6)
+        ax.set_title(f"{name}: roll error against the truth (known accelerations removed)")
+        ax.set_ylabel("roll error [deg]")
         ax.legend(loc="upper right", fontsize=8)
     ax.set_xlabel("time [s]")
     fig.tight_layout()
