@@ -54,6 +54,11 @@ def test_sunsided_static_log_with_temperature(capsys):
     finds must be one of the static catalog's effects and must predict held-out data."""
     rec = import_sunsided_mpu6050(SUNSIDED / "unmoved-with-x-pointing-forward-10min")
     run = audit_recording(rec, "imu")
+    # it must have been recognised as a static log (segment-mean families, temperature among the channels) and,
+    # being 11 minutes long, have had its Allan analysis run for both sensors
+    assert {f.quantity for f in run.result.base_fit.families} == {"accel", "gyro"}
+    assert "temperature" in run.result.base_fit.families[0].coordinates
+    assert {n.quantity for n in run.noise} == {"accel", "gyro"}
     with capsys.disabled():
         for f in run.result.findings:
             print(f"\nsunsided 10 min static: {f['effect']} on {f['target']}: slope {np.round(f['estimate']['slope'], 8)}"

@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from selfcal.factors import imu as fimu
 from selfcal.graphs.solve import DegenerateDataError, marginal_covariances, optimize, robust
 from selfcal.io.recording import ImuData
+from selfcal.models.signals import cross_correlation_lag
 from selfcal.models.static_intervals import detect_static_intervals
 
 ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
@@ -86,21 +87,14 @@ def wahba_rotation(vectors0: np.ndarray, vectors1: np.ndarray, weights=None) -> 
 
 
 def coarse_time_offset(t0_s, gyro0, t1_s, gyro1, max_lag_s=0.5) -> float:
-    """dt (t_imu0 = t_imu1 + dt) maximising the correlation of the rotation-invariant |w| signals."""
-    rate = 1.0 / np.median(np.diff(t0_s))
-    grid = np.arange(t0_s[0], t0_s[-1], 1.0 / rate)
+    """dt (t_imu0 = t_imu1 + dt) maximising the correlation of the rotation-invariant |w| signals.
+
+    |w0|(t) = |w1|(t - dt): the delay of imu0's signal behind imu1's, on imu0's grid.
+    """
+    grid = np.arange(t0_s[0], t0_s[-1], float(np.median(np.diff(t0_s))))
     n0 = np.interp(grid, t0_s, np.linalg.norm(gyro0, axis=1))
     n1 = np.interp(grid, t1_s, np.linalg.norm(gyro1, axis=1))
-    n0, n1 = n0 - n0.mean(), n1 - n1.mean()
-    lags = np.arange(-int(max_lag_s * rate), int(max_lag_s * rate) + 1)
-    corr = np.array([np.dot(n0[max(0, l):len(n0) + min(0, l)], n1[max(0, -l):len(n1) - max(0, l)]) for l in lags])
-    i = int(np.argmax(corr))
-    if 0 < i < len(lags) - 1:  # parabolic refinement to sub-sample resolution
-        c_m, c_0, c_p = corr[i - 1:i + 2]
-        shift = 0.5 * (c_m - c_p) / (c_m - 2 * c_0 + c_p)
-    else:
-        shift = 0.0
-    return float((lags[i] + shift) / rate)
+    return cross_correlation_lag(grid, n1, n0, max_lag_s)
 
 
 def _blocks(n, t_s, block_s):
