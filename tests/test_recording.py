@@ -2,6 +2,7 @@
 
 Every RecordingError must be one line naming the file and, where there is one, the 1-based line number.
 """
+import io
 import os
 import time
 from pathlib import Path
@@ -381,3 +382,16 @@ def test_atomic_directory_exception_removes_temporary(tmp_path):
         (tmp / "f.txt").write_text("ok")
     assert (tmp_path / "d/f.txt").read_text() == "ok"
     assert os.listdir(tmp_path) == ["d"]
+
+
+def test_binary_payloads_are_written_inside_the_atomic_folder(tmp_path):
+    frames = np.arange(12.0).reshape(3, 4)
+    buffer = io.BytesIO()
+    np.save(buffer, frames)
+    sensor = SensorData("array0", np.array([1, 2, 3], dtype=np.int64), {"temperature": np.array([20.0, 20.5, 21.0])},
+                        {"temperature": "degC"})
+    write_recording(Recording(None, {"array0": sensor}), tmp_path / "rec",
+                    extra_files={"array0/frames.npy": buffer.getvalue()})
+    rec = read_recording(tmp_path / "rec")
+    assert rec.sensors["array0"].folder == tmp_path / "rec" / "array0"
+    np.testing.assert_array_equal(np.load(rec.sensors["array0"].folder / "frames.npy"), frames)

@@ -45,6 +45,8 @@ class SensorData:
     values: dict[str, np.ndarray]  # column name (no unit) -> float64 (N,)
     units: dict[str, str]  # column name -> unit string as in the header
     meta: dict = field(default_factory=dict)
+    folder: Path | None = None  # where it was read from: sensors with binary payloads (array0/frames.npy,
+    # scan0/*.ply) load those themselves from here
 
 
 @dataclass
@@ -168,7 +170,7 @@ def read_recording(path) -> Recording:
         if sub.name == TRUTH_FOLDER or sub.name.startswith(".") or not (sub / "data.csv").is_file():
             continue
         t_ns, values, units = _read_data_csv(sub / "data.csv")
-        sensors[sub.name] = SensorData(sub.name, t_ns, values, units, _read_sensor_yaml(sub / "sensor.yaml"))
+        sensors[sub.name] = SensorData(sub.name, t_ns, values, units, _read_sensor_yaml(sub / "sensor.yaml"), sub)
     if not sensors:
         raise RecordingError(f"{path}: no sensor folder with a data.csv in this recording")
     return Recording(path=path, sensors=sensors)
@@ -349,7 +351,8 @@ def _locate_bad_row(file: Path, rows: list[str], names: list[str]) -> None:
 
 # ----------------------------------------------------------------------------------------------------- writing
 
-def write_recording(recording: Recording, path, truth: dict | None = None, overwrite: bool = False) -> Path:
+def write_recording(recording: Recording, path, truth: dict | None = None, overwrite: bool = False,
+                    extra_files: dict[str, bytes] | None = None) -> Path:
     """Write REC atomically (temporary sibling folder, then rename); ``truth`` goes to truth/truth.yaml.
 
     Parameters
@@ -363,6 +366,9 @@ def write_recording(recording: Recording, path, truth: dict | None = None, overw
         Ground truth of a simulated recording (numpy values are converted to plain Python).
     overwrite : bool
         Replace an existing folder; otherwise FileExistsError.
+    extra_files : dict, optional
+        Binary payloads by relative path (``"array0/frames.npy"``, ``"scan0/000001.ply"``), written inside the
+        same atomic folder.
 
     Returns
     -------
@@ -385,6 +391,10 @@ def write_recording(recording: Recording, path, truth: dict | None = None, overw
             target = tmp / rel
             target.parent.mkdir(exist_ok=True)
             target.write_text(text, encoding="utf-8", newline="\n")
+        for rel, data in (extra_files or {}).items():
+            target = tmp / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
     return path
 
 
