@@ -1,0 +1,202 @@
+"""Point clouds and meshes on disk: PLY / PCD / XYZ (open3d), plain ASCII ``.xyz[.gz]`` (numpy), numpy views.
+
+Points are metres in the frame the file states (the scanner or vision frame of a recording, the world frame of
+a corrected scan).  open3d holds the clouds (``open3d.geometry.PointCloud``); the models see ``(N, 3)`` float64
+arrays (:func:`points_of`).  Bad input is refused with one line naming the file: an empty cloud, a file
+open3d cannot parse, a mesh without triangles; non-finite points (NaN / inf, as some scanners write for "no
+return") are either refused or, with ``drop_nonfinite=True``, removed and counted.
+"""
+from __future__ import annotations
+
+import contextlib
+import gzip
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from selfcal.io.pointcloud_errors import PointCloudError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PointCloudError", "LoadedCloud", "points_of", "cloud_from_points", "read_point_cloud",
+           "write_point_cloud", "read_triangle_mesh", "write_triangle_mesh"]
+
+CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
+MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".gltf", ".glb")
+
+
+@dataclass
+class LoadedCloud:
+    """A cloud read from disk and what was removed from it.
+
+    Attributes
+    ----------
+    cloud : open3d.geometry.PointCloud
+        The finite points (with colours / normals where the file has them).
+    path : Path
+        Where it came from.
+    n_read : int
+        Points in the file.
+    n_nonfinite : int
+        Points dropped because a coordinate was NaN or inf.
+    """
+
+    cloud: o3d.geometry.PointCloud
+    path: Path
+    n_read: int
+    n_nonfinite: int
+
+
+def points_of(cloud: o3d.geometry.PointCloud) -> np.ndarray:
+    """The points of an open3d cloud as an (N, 3) float64 array (a copy-free view where open3d allows)."""
+    return np.asarray(cloud.points)
+
+
+def cloud_from_points(points_m, colors=None, normals=None) -> o3d.geometry.PointCloud:
+    """An open3d cloud from (N, 3) points (m), optional colours in [0, 1] and normals."""
+    pts = np.ascontiguousarray(points_m, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise PointCloudError(f"points must be an (N, 3) array, got shape {pts.shape}")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    if colors is not None:
+        cloud.colors = o3d.utility.Vector3dVector(np.ascontiguousarray(colors, dtype=np.float64))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals, dtype=np.float64))
+    return cloud
+
+
+def _read_ascii_xyz(path: Path) -> np.ndarray:
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt") as f:
+        try:
+            data = np.loadtxt(f, ndmin=2)
+        except ValueError as err:
+            raise PointCloudError(f"{path}: not a whitespace-separated x y z table ({err})") from err
+    if data.size and data.shape[1] < 3:
+        raise PointCloudError(f"{path}: {data.shape[1]} columns, need at least x y z")
+    return data[:, :3] if data.size else np.zeros((0, 3))
+
+
+def read_point_cloud(path, drop_nonfinite: bool = False) -> LoadedCloud:
+    """Read a point cloud (PLY, PCD, XYZ, ... via open3d; ``.xyz.gz`` / ``.txt`` via numpy).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    drop_nonfinite : bool
+        Remove points with a NaN / inf coordinate (and count them) instead of refusing the file.
+
+    Returns
+    -------
+    LoadedCloud
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    PointCloudError
+        Unknown format, unreadable, empty, only non-finite points, or non-finite points without
+        ``drop_nonfinite``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such point cloud file")
+    name = path.name.lower()
+    if name.endswith((".xyz.gz", ".txt", ".txt.gz", ".csv")):
+        cloud = cloud_from_points(_read_ascii_xyz(path))
+    elif name.endswith(CLOUD_SUFFIXES):
+        # open3d drops NaN/inf itself only when asked: keep them so that they can be counted and reported
+        cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    else:
+        raise PointCloudError(f"{path}: unknown point cloud format (known: {', '.join(CLOUD_SUFFIXES)}, "
+                              ".xyz.gz, .txt)")
+    pts = points_of(cloud)
+    n_read = len(pts)
+    if n_read == 0:
+        raise PointCloudError(f"{path}: the point cloud is empty (or open3d could not parse it)")
+    finite = np.isfinite(pts).all(axis=1)
+    n_bad = int(n_read - np.count_nonzero(finite))
+    if n_bad:
+        if n_bad == n_read:
+            raise PointCloudError(f"{path}: all {n_read} points are non-finite (NaN/inf)")
+        if not drop_nonfinite:
+            raise PointCloudError(f"{path}: {n_bad} of {n_read} points are non-finite (NaN/inf)")
+        log.warning("%s: dropped %d non-finite points of %d", path, n_bad, n_read)
+        # rebuilt from numpy: select_by_index would need a Python list of millions of indices
+        kept = cloud_from_points(pts[finite],
+                                 np.asarray(cloud.colors)[finite] if cloud.has_colors() else None,
+                                 np.asarray(cloud.normals)[finite] if cloud.has_normals() else None)
+        cloud = kept
+    return LoadedCloud(cloud=cloud, path=path, n_read=n_read, n_nonfinite=n_bad)
+
+
+def write_point_cloud(path, cloud, binary: bool = True) -> Path:
+    """Write a cloud (open3d cloud or (N, 3) array) atomically; the format follows the suffix (.ply, .pcd).
+
+    open3d writes to a temporary name in the destination folder (same suffix, so the format is kept), which
+    is then renamed: a failed write leaves no half file.  PLY keeps float64 coordinates; open3d's PCD writer
+    stores float32 (2^-24 relative: 6 mm at 100 km survey coordinates), so write PLY for metrology.
+    """
+    path = Path(path)
+    if not isinstance(cloud, o3d.geometry.PointCloud):
+        cloud = cloud_from_points(cloud)
+    if not cloud.has_points():
+        raise PointCloudError(f"{path}: refusing to write an empty point cloud")
+    if path.suffix.lower() not in (".ply", ".pcd", ".xyz", ".pts"):
+        raise PointCloudError(f"{path}: unknown point cloud format for writing (.ply, .pcd, .xyz, .pts)")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        if not o3d.io.write_point_cloud(tmp, cloud, write_ascii=not binary):
+            raise PointCloudError(f"{path}: open3d could not write the point cloud")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def read_triangle_mesh(path) -> o3d.geometry.TriangleMesh:
+    """Read a reference mesh (PLY, STL, OBJ, OFF, glTF via open3d); refuse one without triangles.
+
+    Raises
+    ------
+    FileNotFoundError, PointCloudError
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such mesh file")
+    if not path.name.lower().endswith(MESH_SUFFIXES):
+        raise PointCloudError(f"{path}: unknown mesh format (known: {', '.join(MESH_SUFFIXES)})")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    if not mesh.has_triangles():
+        raise PointCloudError(f"{path}: the mesh has no triangles (empty, or a point cloud saved as .ply?)")
+    vertices = np.asarray(mesh.vertices)
+    if not np.isfinite(vertices).all():
+        raise PointCloudError(f"{path}: the mesh has non-finite vertices")
+    return mesh
+
+
+def write_triangle_mesh(path, mesh: o3d.geometry.TriangleMesh) -> Path:
+    """Write a mesh atomically (format from the suffix)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        if not o3d.io.write_triangle_mesh(tmp, mesh):
+            raise PointCloudError(f"{path}: open3d could not write the mesh")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return path

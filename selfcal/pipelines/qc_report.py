@@ -1,0 +1,215 @@
+"""The QC report of ``selfcal qc``: a colour-coded deviation image (PNG), one self-contained HTML file, Markdown.
+
+The deviation image views the scan along its direction of least extent (the third principal axis) and shows,
+per pixel, the mean signed deviation from the reference mesh on a diverging colour map centred on zero (blue:
+inside / below the reference, red: outside / above); the colour range is the deviation tolerance where the
+spec gives one, else the 99th percentile of |d|.  A histogram of the deviations sits next to it.  Figures are
+rendered with matplotlib's Agg canvas (no pyplot state); files are written atomically.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import html
+import io
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from selfcal.audit.report import CSS, png_to_data_uri
+from selfcal.io.atomic import atomic_write_bytes, atomic_write_text
+from selfcal.pipelines.qc import QCResult
+
+VERDICT_COLOUR = {"pass": "#cdebd0", "fail": "#f6c9c4", "incomplete": "#fbe7c0", "reported": "#f6f8fa"}
+IMAGE_PIXELS = 600  # long side of the rasterised deviation map
+IMAGE_MAX_POINTS = 2_000_000
+
+
+def deviation_png(result: QCResult, dpi: int = 110) -> bytes | None:
+    """PNG bytes of the deviation map and histogram; None without a reference (or no point on it)."""
+    dev = result.deviation
+    if dev is None or dev.n_evaluated == 0:
+        return None
+    # at most IMAGE_MAX_POINTS (a regular stride): the map has ~2e5 pixels, a few points per pixel suffice
+    step = max(1, len(dev.points_m) // IMAGE_MAX_POINTS)
+    pts, d = dev.points_m[::step], dev.distances_m[::step]
+    mean = pts.mean(axis=0)
+    # principal axes from a subsample (the covariance of 10 M points needs no more than 200 k of them)
+    sub = pts[:: max(1, len(pts) // 200_000)] - mean
+    _, _, vt = np.linalg.svd(sub, full_matrices=False)
+    # SVD signs are arbitrary: turn each axis so that its largest component is positive (a plate in the
+    # xy plane is then shown with x to the right and y up, not mirrored)
+    vt = vt * np.sign(vt[np.arange(3), np.argmax(np.abs(vt), axis=1)])[:, None]
+    # einsum, not BLAS: a threaded (N, 3) x (3, 2) product stalls for seconds on a busy shared machine
+    axes = vt[:2].T
+    uv = np.einsum("ij,jk->ik", pts, axes) - mean @ axes
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    extent = np.maximum(hi - lo, 1e-9)
+    shape = np.maximum(np.round(IMAGE_PIXELS * extent / extent.max()).astype(int), 1)
+    ix = np.minimum(((uv - lo) / extent * shape).astype(int), shape - 1)
+    flat = ix[:, 1] * shape[0] + ix[:, 0]
+    n = np.bincount(flat, minlength=shape[0] * shape[1])
+    s = np.bincount(flat, weights=d, minlength=shape[0] * shape[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        image = (s / n).reshape(shape[1], shape[0])
+    tol = result.spec.tolerances
+    limit = tol.deviation_p95_m or tol.deviation_max_m or float(np.percentile(np.abs(d), 99)) or 1e-6
+    mm = 1e3
+    fig = Figure(figsize=(12, 4.8), layout="constrained")
+    ax, hx = fig.subplots(1, 2, width_ratios=[2.6, 1])
+    im = ax.imshow(image * mm, origin="lower", cmap="RdBu_r", vmin=-limit * mm, vmax=limit * mm,
+                   extent=(lo[0], hi[0], lo[1], hi[1]), interpolation="nearest")
+    ax.set_xlabel("first principal axis [m]")
+    ax.set_ylabel("second principal axis [m]")
+    ax.set_title("signed deviation from the reference (mean per pixel)")
+    for sphere in result.spheres:
+        c = (sphere.centre_fit.center_m - mean) @ axes
+        ax.annotate(sphere.name, c, color="k", ha="center", va="center", fontsize=8)
+    cbar = fig.colorbar(im, ax=ax, fraction=0.04)
+    cbar.set_label("deviation [mm]")
+    hx.hist(np.clip(d * mm, -3 * limit * mm, 3 * limit * mm), bins=120, color="#4a7ab5")
+    for v in (-limit, limit):
+        hx.axvline(v * mm, color="#c0392b", lw=1, ls="--")
+    hx.set_xlabel("deviation [mm] (clipped at 3x range)")
+    hx.set_ylabel("points")
+    hx.set_title(f"RMS {dev.rms_m * mm:.3g} mm\np95 |d| {dev.p95_abs_m * mm:.3g} mm")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def _mm(x) -> str:
+    return "-" if x is None or not np.isfinite(x) else f"{x * 1e3:.4g}"
+
+
+def _value(c) -> str:
+    if c.value is None:
+        return "-"
+    return f"{c.value:.4g}" if c.unit == "fraction" else _mm(c.value)
+
+
+def _tol(c) -> str:
+    if c.tolerance is None:
+        return "-"
+    return f">= {c.tolerance:.4g}" if c.unit == "fraction" else f"{c.tolerance * 1e3:.4g}"
+
+
+def _sphere_rows(result: QCResult) -> list[list[str]]:
+    rows = []
+    for s in result.spheres:
+        c, sig = s.centre_fit.center_m, s.centre_fit.center_sigma_m
+        rows.append([s.name, ", ".join(f"{x:.5f}" for x in c), ", ".join(f"{x * 1e3:.3g}" for x in sig),
+                     f"{s.fit.radius_m:.5f} +- {s.fit.radius_sigma_m * 1e3:.2g} mm", _mm(s.form_error_m),
+                     _mm(s.size_error_m), _mm(s.fit.rms_m), str(s.fit.n_points),
+                     f"{s.fit.coverage.cap_half_angle_deg:.0f}" + (" (one-sided)" if s.one_sided else ""),
+                     f"{s.normal_consistency:.0%}"])
+    return rows
+
+
+SPHERE_HEADER = ["sphere", "centre [m]", "centre 1-sigma [mm]", "radius [m]", "PF [mm]", "PS [mm]",
+                 "RMS [mm]", "points", "cap [deg]", "radial normals"]
+CHECK_HEADER = ["check", "value [mm]", "tolerance [mm]", "result", "note"]
+
+
+def render_markdown(result: QCResult, image_name: str | None = None) -> str:
+    """The report as Markdown (the deviation image referenced by file name)."""
+    lines = [f"# selfcal QC: {Path(result.scan).name}", "",
+             f"**Verdict: {result.verdict.upper()}**", "",
+             f"- scan: `{result.scan}` ({result.n_points} points"
+             + (f", {result.n_nonfinite} non-finite left out" if result.n_nonfinite else "") + ")",
+             f"- reference: `{result.reference}`" if result.reference else "- reference: none",
+             f"- run: {_dt.datetime.now().isoformat(timespec='seconds')}, {result.seconds['total']:.1f} s", "",
+             "## Checks", "", "| " + " | ".join(CHECK_HEADER) + " |", "|" + "---|" * len(CHECK_HEADER)]
+    for c in result.checks:
+        lines.append(f"| {c.name} | {_value(c)} | {_tol(c)} | {c.status} | {c.note} |")
+    if result.warnings:
+        lines += ["", "## Warnings", ""] + [f"- {w}" for w in result.warnings]
+    if result.spheres:
+        lines += ["", "## Spheres", "", "| " + " | ".join(SPHERE_HEADER) + " |", "|" + "---|" * len(SPHERE_HEADER)]
+        lines += ["| " + " | ".join(r) + " |" for r in _sphere_rows(result)]
+    if result.planes:
+        lines += ["", "## Planes", "", "| plane | normal | points | flatness [mm] | RMS [mm] |", "|---|---|---|---|---|"]
+        lines += [f"| {p.name} | {np.round(p.normal, 4).tolist()} | {p.n_points} | {_mm(p.flatness_m)} | {_mm(p.rms_m)} |"
+                  for p in result.planes]
+    if result.deviation is not None:
+        d = result.deviation
+        lines += ["", "## Deviation from the reference", "",
+                  f"{d.n_evaluated} points evaluated, {d.n_off_reference} farther than "
+                  f"{result.spec.reference.max_distance_m} m; mean {_mm(d.mean_m)} mm, RMS {_mm(d.rms_m)} mm, "
+                  f"p95 |d| {_mm(d.p95_abs_m)} mm, max |d| {_mm(d.max_abs_m)} mm."]
+        if image_name:
+            lines += ["", f"![deviation map]({image_name})"]
+    return "\n".join(lines) + "\n"
+
+
+def _table(header, rows, classes=None) -> str:
+    out = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
+    for k, row in enumerate(rows):
+        cls = f' class="{classes[k]}"' if classes and classes[k] else ""
+        out.append(f"<tr{cls}>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>")
+    return "\n".join(out) + "</table>"
+
+
+def render_html(result: QCResult, png: bytes | None) -> str:
+    """The report as one self-contained HTML file (the image embedded as base64 PNG)."""
+    colour = VERDICT_COLOUR[result.verdict]
+    parts = [f"<h1>selfcal QC: {html.escape(Path(result.scan).name)}</h1>",
+             f'<div class="summary" style="background:{colour}"><b>Verdict: {result.verdict.upper()}</b> &mdash; '
+             f"{sum(c.passed is True for c in result.checks)} passed, {sum(c.passed is False for c in result.checks)} "
+             f"failed, {sum(c.status == 'no tolerance' for c in result.checks)} without tolerance, "
+             f"{sum(c.value is None for c in result.checks)} not checked "
+             "(VDI/VDE 2634-2 figures: PF probing error of form, PS of size (diameter), SD sphere spacing, "
+             "F flatness)</div>",
+             '<table class="meta">'
+             f"<tr><td>scan</td><td>{html.escape(result.scan)} ({result.n_points} points"
+             + (f", {result.n_nonfinite} non-finite left out" if result.n_nonfinite else "") + ")</td></tr>"
+             f"<tr><td>reference</td><td>{html.escape(result.reference or 'none')}</td></tr>"
+             f"<tr><td>run</td><td>{_dt.datetime.now().isoformat(timespec='seconds')}, "
+             f"{result.seconds['total']:.1f} s</td></tr></table>",
+             "<h2>Checks</h2>",
+             _table(CHECK_HEADER, [[c.name, _value(c), _tol(c), c.status, c.note] for c in result.checks],
+                    ["acc" if c.passed else "pbad" if c.passed is False else "pwarn" for c in result.checks])]
+    if result.warnings:
+        parts += ["<h2>Warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in result.warnings)
+                  + "</ul>"]
+    if result.spheres:
+        parts += ["<h2>Spheres</h2>", _table(SPHERE_HEADER, _sphere_rows(result))]
+    if result.planes:
+        parts += ["<h2>Planes</h2>", _table(["plane", "normal", "points", "flatness [mm]", "RMS [mm]"],
+                                            [[p.name, np.round(p.normal, 4).tolist(), p.n_points, _mm(p.flatness_m),
+                                              _mm(p.rms_m)] for p in result.planes])]
+    if result.deviation is not None:
+        d = result.deviation
+        parts += ["<h2>Deviation from the reference</h2>",
+                  f"<p>{d.n_evaluated} points evaluated, {d.n_off_reference} farther than "
+                  f"{result.spec.reference.max_distance_m} m; mean {_mm(d.mean_m)} mm, RMS {_mm(d.rms_m)} mm, "
+                  f"p95 |d| {_mm(d.p95_abs_m)} mm, max |d| {_mm(d.max_abs_m)} mm.</p>"]
+        if png:
+            parts.append(f'<figure><img alt="deviation map" src="{png_to_data_uri(png)}"><figcaption>Blue: '
+                         "inside / below the reference, red: outside / above.</figcaption></figure>")
+    title = html.escape(f"selfcal QC: {Path(result.scan).name}")
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            f"<title>{title}</title>\n<style>{CSS}</style>\n</head>\n<body>\n" + "\n".join(parts)
+            + "\n</body>\n</html>\n")
+
+
+def write_reports(result: QCResult, html_path=None, markdown_path=None, png_path=None) -> dict[str, Path]:
+    """Write whichever of the HTML report, Markdown report and deviation PNG are asked for (atomically).
+
+    With a Markdown report and no explicit PNG path the image is written next to it (``<name>.png``).
+    """
+    written = {}
+    png = deviation_png(result) if result.deviation is not None else None
+    if png is not None and png_path is None and markdown_path is not None:
+        png_path = Path(markdown_path).with_suffix(".png")
+    if png is not None and png_path is not None:
+        written["png"] = atomic_write_bytes(Path(png_path), png)
+    if html_path is not None:
+        written["html"] = atomic_write_text(Path(html_path), render_html(result, png))
+    if markdown_path is not None:
+        image = None
+        if "png" in written:
+            image = (written["png"].name if written["png"].parent.resolve() == Path(markdown_path).parent.resolve()
+                     else str(written["png"]))
+        written["markdown"] = atomic_write_text(Path(markdown_path), render_markdown(result, image))
+    return written
