@@ -1,0 +1,145 @@
+"""Encoder recordings: diode-array frames next to the ASL ``data.csv`` (see ``docs/encoder.md``).
+
+``REC/array<k>/data.csv``   ``#timestamp [ns]`` plus auxiliary columns (``temperature [degC]``, ...), one row per frame
+``REC/array<k>/frames.npy`` (N, n) float signal vectors (ADC counts), row J taken at row J's timestamp
+``REC/array<k>/sensor.yaml`` ``n_diodes``, ``code_length_l``, ``geometry_nominal: {p, q}``, ``aperture_nominal``
+                            ``[t-, t+]``, optional ``adc_max``, ``noise_sigma_counts``, ``array_offset_nominal_rad``,
+                            ``illumination_degree``, ``eccentricity_kappa``
+``REC/reference/data.csv``  optional ``angle [rad]`` of some positions (mixed calibration); ``reference/sensor.yaml``
+                            ``angle_sigma_rad``
+
+Errors a user can cause raise :class:`EncoderRecordingError` (a RecordingError: one line, exit code 1).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from selfcal.io.atomic import atomic_write_text
+from selfcal.io.recording import Recording, RecordingError
+
+ARRAY_RE = re.compile(r"^array(\d+)$")
+
+
+class EncoderRecordingError(RecordingError):
+    """Bad encoder recording (frames of the wrong width, missing sensor.yaml keys, ...)."""
+
+
+@dataclass
+class EncoderArray:
+    name: str
+    t_ns: np.ndarray
+    frames: np.ndarray                  # (N, n)
+    meta: dict
+    channels: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_diodes(self) -> int:
+        return int(self.frames.shape[1])
+
+    def geometry_nominal(self) -> np.ndarray:
+        g = self.meta.get("geometry_nominal", {})
+        return np.array([float(g.get(k, 0.0)) for k in ("p", "q", "u", "v", "x", "y")])
+
+    def aperture_nominal(self) -> np.ndarray:
+        if "aperture_nominal" in self.meta:
+            return np.asarray(self.meta["aperture_nominal"], dtype=float)
+        pitch = 2.0 / self.n_diodes
+        return np.array([0.6 * pitch, 1.6 * pitch])
+
+
+def _where(rec: Recording, name: str) -> str:
+    return f"{rec.path}/{name}" if rec.path is not None else name
+
+
+def array_names(rec: Recording) -> list[str]:
+    return sorted((s for s in rec.sensors if ARRAY_RE.match(s)), key=lambda s: int(ARRAY_RE.match(s).group(1)))
+
+
+def read_encoder_arrays(rec: Recording, frames: dict[str, np.ndarray] | None = None) -> list[EncoderArray]:
+    """Every ``array<k>`` of a recording, frames loaded from ``frames.npy`` and checked.
+
+    ``frames`` may give the arrays in memory (name -> (N, n)) instead of files.
+    """
+    names = array_names(rec)
+    if not names:
+        raise EncoderRecordingError(f"{_where(rec, '')}: no array<k> sensor folder (an encoder recording has "
+                                    "array0/data.csv, array0/frames.npy, array0/sensor.yaml)")
+    out = []
+    for name in names:
+        s = rec.sensors[name]
+        where = _where(rec, name)
+        meta = s.meta
+        for key in ("n_diodes", "code_length_l"):
+            if key not in meta:
+                raise EncoderRecordingError(f"{where}/sensor.yaml: missing key {key!r}")
+        if "p" not in (meta.get("geometry_nominal") or {}):
+            raise EncoderRecordingError(f"{where}/sensor.yaml: missing geometry_nominal.p (half field of view)")
+        if frames is not None and name in frames:
+            data = np.asarray(frames[name])
+        else:
+            if s.folder is None or not (s.folder / "frames.npy").is_file():
+                raise EncoderRecordingError(f"{where}/frames.npy: missing (the array's signal vectors)")
+            try:
+                data = np.load(s.folder / "frames.npy", allow_pickle=False)
+            except (ValueError, OSError) as err:
+                raise EncoderRecordingError(f"{where}/frames.npy: not a numpy array file ({err})") from None
+        n = int(meta["n_diodes"])
+        if data.ndim != 2:
+            raise EncoderRecordingError(f"{where}/frames.npy: expected a 2-D array (frames x diodes), "
+                                        f"got shape {data.shape}")
+        if data.shape[1] != n:
+            raise EncoderRecordingError(f"{where}/frames.npy: frames are {data.shape[1]} diodes wide, "
+                                        f"sensor.yaml says n_diodes: {n}")
+        if data.shape[0] != s.t_ns.size:
+            raise EncoderRecordingError(f"{where}/frames.npy: {data.shape[0]} frames, data.csv has "
+                                        f"{s.t_ns.size} rows")
+        if not np.issubdtype(data.dtype, np.number):
+            raise EncoderRecordingError(f"{where}/frames.npy: dtype {data.dtype} is not numeric")
+        data = data.astype(float)
+        if not np.isfinite(data).all():
+            J = int(np.argmax(~np.isfinite(data).all(axis=1)))
+            raise EncoderRecordingError(f"{where}/frames.npy: frame {J} holds NaN or inf")
+        out.append(EncoderArray(name, s.t_ns, data, meta, dict(s.values)))
+    l = {int(a.meta["code_length_l"]) for a in out}
+    if len(l) != 1:
+        raise EncoderRecordingError(f"{_where(rec, '')}: arrays disagree on code_length_l ({sorted(l)})")
+    if len(out) > 1 and any(a.t_ns.size != out[0].t_ns.size or np.any(a.t_ns != out[0].t_ns) for a in out[1:]):
+        raise EncoderRecordingError(f"{_where(rec, '')}: arrays must record the same positions (same timestamps)")
+    return out
+
+
+@dataclass
+class ReferenceAngles:
+    t_ns: np.ndarray
+    angle_rad: np.ndarray
+    sigma_rad: float
+
+
+def read_reference(rec: Recording) -> ReferenceAngles | None:
+    """``reference/data.csv`` (``angle [rad]``) with ``angle_sigma_rad`` from its sensor.yaml, or None."""
+    s = rec.sensors.get("reference")
+    if s is None:
+        return None
+    where = _where(rec, "reference")
+    if "angle" not in s.values:
+        raise EncoderRecordingError(f"{where}/data.csv: needs a column 'angle [rad]'")
+    if s.units.get("angle") != "rad":
+        raise EncoderRecordingError(f"{where}/data.csv: column angle has unit [{s.units.get('angle')}], expected [rad]")
+    sigma = float(s.meta.get("angle_sigma_rad", 0.0))
+    if not sigma > 0:
+        raise EncoderRecordingError(f"{where}/sensor.yaml: angle_sigma_rad must be given and positive")
+    return ReferenceAngles(s.t_ns, s.values["angle"], sigma)
+
+
+def write_angles_csv(path, t_ns, angle_rad, sigma_rad, flags) -> None:
+    """``#timestamp [ns],angle [rad],angle_sigma [rad],valid [1],flag [text]`` (atomically)."""
+    lines = ["#timestamp [ns],angle [rad],angle_sigma [rad],valid [1],flag [text]"]
+    for t, a, s, f in zip(t_ns, angle_rad, sigma_rad, flags):
+        a_txt = repr(float(a)) if math.isfinite(a) else "nan"
+        s_txt = repr(float(s)) if math.isfinite(s) else "nan"
+        lines.append(f"{int(t)},{a_txt},{s_txt},{0 if f else 1},{f or 'ok'}")
+    atomic_write_text(path, "\n".join(lines) + "\n")
