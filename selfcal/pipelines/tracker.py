@@ -1,0 +1,192 @@
+"""Use cases of the laser-tracker target: ``selfcal smooth tracker REC`` and the online :class:`OnlineTracker`.
+
+Recording columns (docs/tracker.md): ``imu0`` EuRoC; ``tracker0`` ``x, y, z [m]`` (+ optional ``vx, vy, vz
+[m s^-1]``); ``incl0`` ``roll, pitch [rad]``; ``cam0`` ``u, v [px]``.  Geometry and sigmas come from the
+sensors' sensor.yaml (keys written by :mod:`selfcal.sim.tracker`), defaults otherwise.
+"""
+from __future__ import annotations
+
+import heapq
+import json
+import logging
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from selfcal.graphs.tracker import (GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions, batch_smooth)
+from selfcal.io.recording import GYRO_COLUMNS, ACCEL_COLUMNS, Recording, RecordingError
+
+log = logging.getLogger(__name__)
+
+MODES = ("batch", "isam2", "fixed-lag")
+REQUIRED = {"imu0": GYRO_COLUMNS + ACCEL_COLUMNS, "tracker0": ("x", "y", "z"), "incl0": ("roll", "pitch"),
+            "cam0": ("u", "v")}
+
+
+def noise_from_meta(meta: dict[str, dict]) -> SensorNoise:
+    """SensorNoise from the sensor.yaml dicts of imu0, tracker0, incl0, cam0 (missing keys keep defaults)."""
+    n = SensorNoise()
+    imu, tr, inc, cam = (meta.get(s, {}) or {} for s in ("imu0", "tracker0", "incl0", "cam0"))
+    updates = {
+        "gyro_noise_density": imu.get("gyroscope_noise_density"),
+        "accel_noise_density": imu.get("accelerometer_noise_density"),
+        "gyro_random_walk": imu.get("gyroscope_random_walk"),
+        "accel_random_walk": imu.get("accelerometer_random_walk"),
+        "imu_rate_hz": imu.get("rate_hz"), "gravity_m_s2": imu.get("gravity_m_s2"),
+        "tracker_sigma_m": tr.get("position_sigma_m"), "tracker_velocity_sigma_m_s": tr.get("velocity_sigma_m_s"),
+        "incl_sigma_rad": inc.get("sigma_rad"), "cam_sigma_px": cam.get("sigma_px")}
+    n = replace(n, **{k: float(v) for k, v in updates.items() if v is not None})
+    arrays = {"r_P_B": tr.get("lever_arm_prism_m"), "tracker_W": tr.get("tracker_W_m"),
+              "r_C_B": cam.get("lever_arm_camera_m"), "R_B_C": cam.get("R_B_C"),
+              "camera_matrix": cam.get("camera_matrix"), "dist_coeffs": cam.get("dist_coeffs")}
+    return replace(n, **{k: np.asarray(v, dtype=float) for k, v in arrays.items() if v is not None})
+
+
+class OnlineTracker:
+    """The online estimator behind ``selfcal track``: one sample at a time, in timestamp order.
+
+    ``push(sensor_name, t_ns, values)`` takes the recording's column names without units (``imu0``:
+    ``w_RS_S_x ... a_RS_S_z``; ``tracker0``: ``x, y, z`` [+ ``vx, vy, vz``]; ``incl0``: ``roll, pitch``;
+    ``cam0``: ``u, v``) and returns the keyframe outputs this sample completed (usually none or one):
+    ``{"t_ns", "position", "quaternion" (qx, qy, qz, qw), "covariance" (6x6 list, [rotation, position], world
+    frame), "faults" {sensor: bool}, "decisions" [...]}``.  Unknown sensors are ignored (counted); a sample
+    missing a column raises RecordingError naming it.
+    """
+
+    def __init__(self, noise: SensorNoise | None = None, mode: str = "fixed-lag", gating: bool = True,
+                 options: TrackerOptions | None = None):
+        if options is None:
+            options = TrackerOptions(mode=mode, gating=GatingOptions() if gating else GatingOptions(chi2=False,
+                                                                                                 eigen=False))
+        self.estimator = TrackerEstimator(noise or SensorNoise(), options)
+        self.ignored = 0
+        self.latency_s: list[float] = []
+
+    def push(self, sensor_name: str, t_ns: int, values: dict[str, float]) -> list[dict]:
+        start = time.perf_counter()
+        e = self.estimator
+        try:
+            if sensor_name == "imu0":
+                out = e.imu(int(t_ns), [values[c] for c in GYRO_COLUMNS], [values[c] for c in ACCEL_COLUMNS])
+            elif sensor_name == "tracker0":
+                vel = [values[c] for c in ("vx", "vy", "vz")] if "vx" in values else None
+                out = e.tracker(int(t_ns), [values["x"], values["y"], values["z"]], vel)
+            elif sensor_name == "incl0":
+                out = e.incl(int(t_ns), values["roll"], values["pitch"])
+            elif sensor_name == "cam0":
+                out = e.cam(int(t_ns), values["u"], values["v"])
+            else:
+                self.ignored += 1
+                return []
+        except KeyError as err:
+            raise RecordingError(f"{sensor_name}: sample at {t_ns} ns lacks column {err}") from None
+        if out:
+            for o in out:
+                if o["covariance"] is not None:
+                    o["covariance"] = np.asarray(o["covariance"]).tolist()
+            self.latency_s.append(time.perf_counter() - start)
+        return out
+
+
+def recording_events(recording: Recording):
+    """Every sample of the four sensors as (sensor, t_ns, values) in timestamp order (IMU first at ties)."""
+    order = {"imu0": 0, "tracker0": 1, "incl0": 2, "cam0": 3}
+    for name in ("imu0", "tracker0", "incl0"):
+        if name not in recording.sensors:
+            raise RecordingError(f"{recording.path}: the tracker system needs sensor {name!r} "
+                                 f"(has: {', '.join(sorted(recording.sensors))})")
+    streams = []
+    for name, rank in order.items():
+        if name not in recording.sensors:
+            continue
+        s = recording.sensors[name]
+        missing = [c for c in REQUIRED[name] if c not in s.values]
+        if missing:
+            raise RecordingError(f"{recording.path}/{name}: missing columns {', '.join(missing)}")
+        streams.append(_sensor_events(name, rank, s))
+    for t, _, name, values in heapq.merge(*streams, key=lambda e: (e[0], e[1])):
+        yield name, t, values
+
+
+def _sensor_events(name, rank, sensor):
+    cols = list(sensor.values)
+    data = np.column_stack([sensor.values[c] for c in cols])
+    for t, row in zip(sensor.t_ns.tolist(), data.tolist()):
+        yield t, rank, name, dict(zip(cols, row))
+
+
+@dataclass
+class TrackerResult:
+    t_ns: np.ndarray  # (K,)
+    position: np.ndarray  # (K, 3) body (IMU) origin in the tracker frame, m
+    quaternion: np.ndarray  # (K, 4) qx qy qz qw of R_W_B
+    covariance: np.ndarray | None  # (K, 6, 6) [rotation rad, position m], world frame
+    faults: list[dict]  # per keyframe
+    decisions: list[dict]  # every gating decision, in order
+    mode: str
+    seconds: float
+    counts: dict = field(default_factory=dict)
+
+    def tum_text(self) -> str:
+        """TUM lines ``t x y z qx qy qz qw`` (t in s since the epoch of the recording's stamps)."""
+        return "".join(f"{t * 1e-9:.9f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n"
+                       for t, p, q in zip(self.t_ns, self.position, self.quaternion))
+
+    def decisions_jsonl(self) -> str:
+        return "".join(json.dumps(d) + "\n" for d in self.decisions)
+
+
+def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = True,
+                   options: TrackerOptions | None = None, covariance: bool = True) -> TrackerResult:
+    """Smooth a tracker recording: ``'fixed-lag'`` / ``'isam2'`` give the online (filtered) poses, ``'batch'``
+    runs the online pass for the gating decisions and then Levenberg-Marquardt over every keyframe."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
+    meta = {name: s.meta for name, s in recording.sensors.items()}
+    if options is None:
+        g = GatingOptions() if gating else GatingOptions(chi2=False, eigen=False)
+        options = TrackerOptions(mode="isam2" if mode == "isam2" else "fixed-lag", gating=g,
+                                 keep_graph=(mode == "batch"))
+    tracker = OnlineTracker(noise_from_meta(meta), options=options)
+    start = time.perf_counter()
+    outputs = []
+    for name, t, values in recording_events(recording):
+        outputs.extend(tracker.push(name, t, values))
+    if not outputs:
+        raise RecordingError(f"{recording.path}: no pose: the tracker, inclinometer and camera never all reported")
+    decisions = [d for o in outputs for d in o["decisions"]]
+    faults = [o["faults"] for o in outputs]
+    if mode == "batch":
+        t_ns, poses, covs = batch_smooth(tracker.estimator, covariance=covariance)
+        position = np.array([p.translation() for p in poses])
+        quats = np.array([[q.x(), q.y(), q.z(), q.w()] for q in (p.rotation().toQuaternion() for p in poses)])
+        cov = np.array(covs) if covs is not None else None
+        faults = [{}] + faults  # the first keyframe has no output of its own
+    else:
+        t_ns = np.array([o["t_ns"] for o in outputs], dtype=np.int64)
+        position = np.array([o["position"] for o in outputs])
+        quats = np.array([o["quaternion"] for o in outputs])
+        cov = np.array([o["covariance"] for o in outputs]) if outputs[0]["covariance"] is not None else None
+    return TrackerResult(t_ns, position, quats, cov, faults, decisions, mode, time.perf_counter() - start,
+                         dict(tracker.estimator.counts))
+
+
+def patent_baseline(recording: Recording, use_fading: bool = True, use_fault_detection: bool = True):
+    """Patent 004's filter (:mod:`selfcal.baselines.patent_004_tracker`) on a recording, same sensor model."""
+    from selfcal.baselines.patent_004_tracker import Patent004Filter, Patent004Params
+    n = noise_from_meta({name: s.meta for name, s in recording.sensors.items()})
+    params = Patent004Params(
+        tracker_sigma_m=n.tracker_sigma_m, tracker_velocity_sigma_m_s=n.tracker_velocity_sigma_m_s,
+        incl_sigma_rad=n.incl_sigma_rad, cam_sigma_rad=n.cam_sigma_rad, gyro_noise_density=n.gyro_noise_density,
+        accel_noise_density=n.accel_noise_density, gyro_random_walk=n.gyro_random_walk,
+        accel_random_walk=n.accel_random_walk, gravity_m_s2=n.gravity_m_s2, r_P_B=n.r_P_B, r_C_B=n.r_C_B,
+        R_B_C=n.R_B_C, camera_matrix=n.camera_matrix, dist_coeffs=n.dist_coeffs, tracker_W=n.tracker_W,
+        use_fading=use_fading, use_fault_detection=use_fault_detection)
+    imu = recording.imu("imu0")
+    tr, inc, cam = (recording.sensors[s] for s in ("tracker0", "incl0", "cam0"))
+    vel = np.column_stack([tr.values[c] for c in ("vx", "vy", "vz")]) if "vx" in tr.values else None
+    return Patent004Filter(params).run(
+        imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2, tr.t_ns, np.column_stack([tr.values[c] for c in "xyz"]), vel,
+        inc.t_ns, np.column_stack([inc.values["roll"], inc.values["pitch"]]), cam.t_ns,
+        np.column_stack([cam.values["u"], cam.values["v"]]))

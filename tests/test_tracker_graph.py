@@ -1,0 +1,120 @@
+"""Tracker graph, gating and online estimator (selfcal.graphs.tracker, selfcal.pipelines.tracker)."""
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from selfcal.cli import main
+from selfcal.graphs.tracker import GatingOptions, TrackerOptions
+from selfcal.pipelines.tracker import OnlineTracker, noise_from_meta, patent_baseline, smooth_tracker
+from selfcal.sim.tracker import Fault, TrackerScenario
+
+
+def _errors(sc, t_ns, quat, pos):
+    t = (np.asarray(t_ns) - sc.t0_ns) * 1e-9
+    R, p = sc.truth_pose(t)
+    R_est = Rotation.from_quat(quat).as_matrix()
+    rot = Rotation.from_matrix(np.einsum("nji,njk->nik", R, R_est)).as_rotvec()  # body-frame error
+    return np.einsum("nij,nj->ni", R, rot), pos - p  # world frame, as the reported covariance
+
+
+@pytest.fixture(scope="module")
+def quiet_run():
+    sc = TrackerScenario(duration_s=40.0, seed=6, burst_rate_per_min=0.0)
+    return sc, smooth_tracker(sc.measurements(seed=2), mode="fixed-lag")
+
+
+def test_online_errors_agree_with_reported_covariance(quiet_run):
+    """Filtered errors normalised by the reported marginal sigmas: under 3 sigma for >= 95 % of keyframes per
+    component (Gaussian 99.7 %; errors are correlated in time, so the fraction is checked loosely), and the
+    RMS of error/sigma between 0.3 and 2 (an over- or under-confident covariance fails)."""
+    sc, res = quiet_run
+    rot, pos = _errors(sc, res.t_ns, res.quaternion, res.position)
+    skip = 50  # the first 5 s: the prior still dominates
+    e = np.hstack([rot, pos])[skip:]
+    sigma = np.sqrt(np.einsum("nii->ni", res.covariance))[skip:]
+    z = e / sigma
+    assert np.all(np.mean(np.abs(z) < 3, axis=0) >= 0.95), np.mean(np.abs(z) < 3, axis=0)
+    rms = np.sqrt(np.mean(z**2, axis=0))
+    assert np.all((rms > 0.3) & (rms < 2.0)), rms
+    assert np.sqrt(np.mean(np.sum(pos[skip:] ** 2, axis=1))) < 1e-3  # sub-mm with 0.5 mm tracker noise at 50 Hz
+    assert res.counts["rejected"] <= 5  # gate at 1e-4 per test: ~1 expected over ~2400 tests
+
+
+def test_gates_reject_spikes_and_jumps_and_detect_a_stuck_inclinometer():
+    sc = TrackerScenario(duration_s=48.0, seed=6, burst_rate_per_min=0.0, faults=[
+        Fault("incl0", "spike", 10.0, 10.05, np.radians(1.0), 0),
+        Fault("tracker0", "jump", 15.0, 15.06, 0.02, 0, (0.0, 1.0, 0.0)),
+        Fault("incl0", "stuck", 22.0, 38.0)])
+    rec = sc.measurements(seed=3)
+    res = smooth_tracker(rec, mode="fixed-lag")
+    t = lambda d: (d["t_ns"] - sc.t0_ns) * 1e-9  # noqa: E731
+    rejected = [(d["sensor"], round(t(d), 2)) for d in res.decisions if d["decision"] == "reject"]
+    assert ("incl0", 10.0) in rejected
+    assert sum(1 for s, ti in rejected if s == "tracker0" and 15.0 <= ti < 15.06) == 3
+    for d in res.decisions:  # every decision carries its statistic and threshold
+        assert np.isfinite(d["statistic"]) and np.isfinite(d["threshold"])
+    alarms = [t(d) for d in res.decisions if d["test"] == "eigen" and d["decision"] == "fault"]
+    assert alarms and 22.0 < alarms[0] < 32.0, alarms  # a stuck output lost its noise: lambda_min too small
+    recovered = [t(d) for d in res.decisions if d["test"] == "eigen" and d["decision"] == "recovered"]
+    assert recovered and 38.0 < recovered[-1] < 48.0, recovered
+    # ungated, the frozen reading holds the attitude back while the machine steers: gated must do better
+    ungated = smooth_tracker(rec, mode="fixed-lag", gating=False)
+    sel = lambda r: ((r.t_ns - sc.t0_ns) * 1e-9 > 22.0) & ((r.t_ns - sc.t0_ns) * 1e-9 < 38.0)  # noqa: E731
+    err_g = _errors(sc, res.t_ns, res.quaternion, res.position)[0][sel(res)]
+    err_u = _errors(sc, ungated.t_ns, ungated.quaternion, ungated.position)[0][sel(ungated)]
+    assert np.sqrt(np.mean(err_g**2)) < np.sqrt(np.mean(err_u**2))
+
+
+def test_fixed_lag_memory_is_bounded_and_push_api():
+    sc = TrackerScenario(duration_s=30.0, seed=8)
+    tracker = OnlineTracker(noise_from_meta(sc._meta()), mode="fixed-lag")
+    sizes, out = [], []
+    for name, t, values in sc.stream(seed=1):
+        o = tracker.push(name, t, values)
+        out.extend(o)
+        if o and len(out) % 50 == 0:
+            sizes.append(tracker.estimator._smoother.getFactors().nrFactors())
+    assert max(sizes[-4:]) <= 1.2 * sizes[len(sizes) // 2 - 1]  # 10 s lag: flat from then on
+    o = out[-1]
+    assert set(o) >= {"t_ns", "position", "quaternion", "covariance", "faults", "decisions"}
+    C = np.asarray(o["covariance"])
+    assert C.shape == (6, 6) and np.allclose(C, C.T) and np.all(np.linalg.eigvalsh(C) > 0)
+    assert abs(np.linalg.norm(o["quaternion"]) - 1) < 1e-9
+    assert tracker.push("gps7", out[-1]["t_ns"] + 1, {"x": 1.0}) == [] and tracker.ignored == 1
+
+
+def test_batch_and_isam2_agree_with_truth():
+    sc = TrackerScenario(duration_s=15.0, seed=6, burst_rate_per_min=0.0)
+    rec = sc.measurements(seed=2)
+    for mode in ("batch", "isam2"):
+        res = smooth_tracker(rec, mode=mode, covariance=False)
+        rot, pos = _errors(sc, res.t_ns, res.quaternion, res.position)
+        assert np.sqrt(np.mean(np.sum(pos[50:] ** 2, axis=1))) < 1e-3
+        assert np.degrees(np.sqrt(np.mean(np.sum(rot[50:] ** 2, axis=1)))) < 0.02
+
+
+def test_patent_baseline_runs_and_switches_on_a_spike():
+    sc = TrackerScenario(duration_s=30.0, seed=6, burst_rate_per_min=0.0,
+                         faults=[Fault("incl0", "spike", 15.0, 15.05, np.radians(1.0), 0)])
+    res = patent_baseline(sc.measurements(seed=3), use_fading=True)
+    t = (res.t_ns - sc.t0_ns) * 1e-9
+    R, p = sc.truth_pose(t)
+    assert np.sqrt(np.mean(np.sum((res.p_W - p)[t > 5] ** 2, axis=1))) < 2e-3
+    chi2 = [(d["t_ns"] - sc.t0_ns) * 1e-9 for d in res.decisions if d["test"] == "chi2"]
+    assert any(abs(x - 15.0) < 0.03 for x in chi2)  # the spike is flagged by the innovation test
+
+
+def test_cli_simulate_and_smooth(tmp_path):
+    rec = tmp_path / "rec"
+    assert main(["simulate", "tracker", "--out", str(rec), "--duration", "15", "--faults"]) == 0
+    assert (rec / "tracker0" / "data.csv").read_text().splitlines()[0] == (
+        "#timestamp [ns],x [m],y [m],z [m],vx [m s^-1],vy [m s^-1],vz [m s^-1]")
+    out, log = tmp_path / "poses.tum", tmp_path / "decisions.jsonl"
+    assert main(["smooth", "tracker", str(rec), "--mode", "fixed-lag", "--out", str(out), "--log", str(log)]) == 0
+    lines = out.read_text().splitlines()
+    assert len(lines) > 100 and len(lines[0].split()) == 8
+    first = json.loads(log.read_text().splitlines()[0])
+    assert {"t_ns", "sensor", "test", "statistic", "threshold", "decision"} <= set(first)
+    assert main(["smooth", "tracker", str(tmp_path / "missing"), "--out", str(out)]) == 1
