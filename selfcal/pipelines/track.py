@@ -1,0 +1,204 @@
+"""``selfcal track``: live samples -> online estimator -> TUM poses + JSON lines, written as they come.
+
+The estimator is anything with ``push(sensor_name, t_ns, values) -> list[dict]`` consuming samples in timestamp
+order; each output dict holds ``t_ns``, ``position`` (3), ``quaternion`` (qx, qy, qz, qw: TUM's order, as
+:class:`selfcal.pipelines.tracker.OnlineTracker` gives it), ``covariance`` (6x6) and fault flags.  Systems are
+looked up in :data:`ESTIMATORS` (``tracker`` now; ``ship`` can be added with the same interface): a factory
+taking the sensors' sensor.yaml contents (``{sensor: meta}``, from the replayed recording or ``--sensors-from``).
+
+Outputs are streams, not results: each line is appended and flushed as soon as the estimator gives it, so a
+killed tracker leaves every pose computed before the kill (atomic whole-file writes would leave nothing).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _tracker_estimator(meta: dict[str, dict]):
+    from selfcal.pipelines.tracker import OnlineTracker, noise_from_meta
+    return OnlineTracker(noise=noise_from_meta(meta))
+
+
+def _ship_estimator(meta: dict[str, dict]):
+    from selfcal.pipelines.ship import OnlineShipTracker
+    return OnlineShipTracker(meta)
+
+
+ESTIMATORS: dict[str, Callable[[dict[str, dict]], object]] = {"tracker": _tracker_estimator, "ship": _ship_estimator}
+
+
+class TrackError(ValueError):
+    """A ``selfcal track`` run cannot start (unknown system, output exists, estimator output malformed)."""
+
+
+@dataclass
+class TrackResult:
+    """Counters of one run: samples in, poses out, wall time, data time span, push latencies."""
+
+    samples: int = 0
+    outputs: int = 0
+    wall_s: float = 0.0
+    data_span_s: float = 0.0
+    latencies_s: list[float] = field(default_factory=list, repr=False)
+    per_sensor: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def samples_per_s(self) -> float:
+        return self.samples / self.wall_s if self.wall_s > 0 else float("inf")
+
+    @property
+    def realtime_factor(self) -> float:
+        """Data time / wall time (> 1: faster than real time)."""
+        return self.data_span_s / self.wall_s if self.wall_s > 0 else float("inf")
+
+    def latency_percentile_ms(self, q: float) -> float:
+        return float(np.percentile(self.latencies_s, q) * 1e3) if self.latencies_s else float("nan")
+
+    def summary(self) -> str:
+        return (f"{self.samples} samples ({', '.join(f'{k} {v}' for k, v in sorted(self.per_sensor.items()))}) -> "
+                f"{self.outputs} poses in {self.wall_s:.2f} s: {self.samples_per_s:.0f} samples/s, "
+                f"{self.realtime_factor:.1f}x real time; push latency p50 {self.latency_percentile_ms(50):.3f} ms, "
+                f"p99 {self.latency_percentile_ms(99):.3f} ms, max {self.latency_percentile_ms(100):.3f} ms")
+
+    def to_dict(self) -> dict:
+        return {"samples": self.samples, "outputs": self.outputs, "wall_s": self.wall_s,
+                "data_span_s": self.data_span_s, "samples_per_s": self.samples_per_s,
+                "realtime_factor": self.realtime_factor, "latency_p50_ms": self.latency_percentile_ms(50),
+                "latency_p99_ms": self.latency_percentile_ms(99), "latency_max_ms": self.latency_percentile_ms(100),
+                "per_sensor": dict(self.per_sensor)}
+
+
+def make_estimator(system: str, meta: dict[str, dict] | None = None):
+    """The online estimator of ``system`` (see :data:`ESTIMATORS`), configured from sensor.yaml contents."""
+    if system not in ESTIMATORS:
+        raise TrackError(f"no online estimator for system {system!r}; known: {', '.join(sorted(ESTIMATORS))}")
+    return ESTIMATORS[system](meta or {})
+
+
+def sensor_meta(recording_path) -> dict[str, dict]:
+    """``{sensor: sensor.yaml content}`` of a recording folder (only the YAML files are read, not the data)."""
+    import yaml
+
+    from selfcal.io.recording import RecordingError
+    path = Path(recording_path)
+    if not path.is_dir():
+        raise RecordingError(f"{path}: no such recording folder")
+    meta = {}
+    for file in sorted(path.glob("*/sensor.yaml")):
+        try:
+            content = yaml.safe_load(file.read_text(encoding="utf-8"))
+        except yaml.YAMLError as err:
+            raise RecordingError(f"{file}: invalid YAML ({' '.join(str(err).split())})") from None
+        meta[file.parent.name] = content if isinstance(content, dict) else {}
+    return meta
+
+
+def tum_line(out: dict) -> str:
+    """``t x y z qx qy qz qw`` (TUM) from one estimator output; t in s with the full ns resolution."""
+    t_ns = int(out["t_ns"])
+    p = np.asarray(out["position"], dtype=float).reshape(3)
+    q = np.asarray(out["quaternion"], dtype=float).reshape(4)  # qx qy qz qw
+    sign = "-" if t_ns < 0 else ""
+    sec, frac = divmod(abs(t_ns), 10**9)
+    return " ".join([f"{sign}{sec}.{frac:09d}", *(repr(float(v)) for v in (*p, *q))])
+
+
+def _plain(obj):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+class _LineSink:
+    """A text file that lines are appended to and flushed one by one."""
+
+    def __init__(self, path, append: bool):
+        self.path = Path(path)
+        if self.path.exists() and self.path.stat().st_size > 0 and not append:
+            raise FileExistsError(f"{self.path}: already exists (pass --append to continue it)")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.file = open(self.path, "a", encoding="utf-8", newline="\n")
+        if self.file.tell() > 0:  # a killed run may have left a partial line: end it so ours start clean
+            with open(self.path, "rb") as f:
+                f.seek(-1, 2)
+                if f.read(1) != b"\n":
+                    self.file.write("\n")
+
+    def write(self, line: str) -> None:
+        self.file.write(line + "\n")
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def run_track(samples: Iterable[tuple[str, int, dict]], estimator, out_tum=None, out_jsonl=None,
+              append: bool = False, clock: Callable[[], float] = time.perf_counter) -> TrackResult:
+    """Feed ``samples`` to ``estimator.push`` and stream its outputs to TUM and JSON-lines files.
+
+    Parameters
+    ----------
+    samples : iterable of (sensor_name, t_ns, values)
+        In timestamp order (see :mod:`selfcal.io.streams`).
+    estimator : object
+        With ``push(sensor_name, t_ns, values) -> list[dict]``.
+    out_tum, out_jsonl : path, optional
+        Poses (``t x y z qx qy qz qw``) and full outputs (one JSON object per line: the estimator's dict,
+        covariance and fault flags included).
+    append : bool
+        Continue existing output files instead of refusing them.
+
+    Returns
+    -------
+    TrackResult
+        Throughput and latency counters (the latency of one ``push`` call, wall clock).
+    """
+    sinks = []
+    result = TrackResult()
+    try:
+        tum = _LineSink(out_tum, append) if out_tum else None
+        sinks.append(tum)
+        jsonl = _LineSink(out_jsonl, append) if out_jsonl else None
+        sinks.append(jsonl)
+        t_first = t_last = None
+        start = clock()
+        for name, t_ns, values in samples:
+            t0 = clock()
+            outputs = estimator.push(name, t_ns, values)
+            result.latencies_s.append(clock() - t0)
+            result.samples += 1
+            result.per_sensor[name] = result.per_sensor.get(name, 0) + 1
+            t_first = t_ns if t_first is None else t_first
+            t_last = t_ns
+            for out in outputs or ():
+                try:
+                    line = tum_line(out)
+                except (KeyError, TypeError, ValueError) as err:
+                    raise TrackError(f"estimator output without a usable pose ({err!r}): keys {sorted(out)}") \
+                        from None
+                if tum is not None:
+                    tum.write(line)
+                if jsonl is not None:
+                    jsonl.write(json.dumps(out, default=_plain, separators=(",", ":")))
+                result.outputs += 1
+        result.wall_s = clock() - start
+        result.data_span_s = (t_last - t_first) * 1e-9 if t_first is not None else 0.0
+    finally:
+        for sink in sinks:
+            if sink is not None:
+                sink.close()
+    log.info("%s", result.summary())
+    return result
