@@ -135,11 +135,14 @@ def read_reference(rec: Recording) -> ReferenceAngles | None:
     return ReferenceAngles(s.t_ns, s.values["angle"], sigma)
 
 
-def write_angles_csv(path, t_ns, angle_rad, sigma_rad, flags) -> None:
-    """``#timestamp [ns],angle [rad],angle_sigma [rad],valid [1],flag [text]`` (atomically)."""
-    lines = ["#timestamp [ns],angle [rad],angle_sigma [rad],valid [1],flag [text]"]
-    for t, a, s, f in zip(t_ns, angle_rad, sigma_rad, flags):
-        a_txt = repr(float(a)) if math.isfinite(a) else "nan"
-        s_txt = repr(float(s)) if math.isfinite(s) else "nan"
-        lines.append(f"{int(t)},{a_txt},{s_txt},{0 if f else 1},{f or 'ok'}")
+def write_angles_csv(path, t_ns, angle_rad, sigma_rad, flags, extra=()) -> None:
+    """``#timestamp [ns],angle [rad],angle_sigma [rad],valid [1],flag [text]`` (atomically), then the ``extra``
+    columns: ``(header "name [unit]", values)`` pairs (e.g. the tracked drift parameters)."""
+    extra = list(extra)
+    lines = ["#timestamp [ns],angle [rad],angle_sigma [rad],valid [1],flag [text]"
+             + "".join(f",{h}" for h, _ in extra)]
+    txt = lambda x: repr(float(x)) if math.isfinite(x) else "nan"  # noqa: E731
+    for i, (t, a, s, f) in enumerate(zip(t_ns, angle_rad, sigma_rad, flags)):
+        lines.append(f"{int(t)},{txt(a)},{txt(s)},{0 if f else 1},{f or 'ok'}"
+                     + "".join(f",{txt(v[i])}" for _, v in extra))
     atomic_write_text(path, "\n".join(lines) + "\n")

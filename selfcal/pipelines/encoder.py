@@ -6,6 +6,7 @@ companion ``.npy`` file named in the YAML (``covariance_file``).
 """
 from __future__ import annotations
 
+import copy
 import io
 import logging
 import math
@@ -17,6 +18,7 @@ import numpy as np
 
 from selfcal.baselines.patent_000_encoder import patent_calibration
 from selfcal.graphs import encoder as ge
+from selfcal.graphs import encoder_durable as ged
 from selfcal.io.encoder_recording import EncoderRecordingError, read_encoder_arrays, read_reference
 from selfcal.io.recording import Recording
 from selfcal.models import encoder as enc
@@ -171,13 +173,24 @@ class MeasureResult:
     sigma_noise_rad: np.ndarray
     flags: list[str]
     array: str
+    drift_columns: list[tuple[str, np.ndarray]] = field(default_factory=list)   # ("p [1]", values), ...
+    updated_calibration: dict | None = None     # --track-drift: the calibration after the run
+    updated_covariance: np.ndarray | None = None
+    seconds: float = 0.0
 
     def summary(self) -> str:
         ok = np.array([not f for f in self.flags])
-        return (f"{self.array}: {int(ok.sum())}/{ok.size} frames measured, median sigma "
+        text = (f"{self.array}: {int(ok.sum())}/{ok.size} frames measured, median sigma "
                 f"{np.nanmedian(self.sigma_rad[ok]) * 1e6 if ok.any() else float('nan'):.3f} urad"
                 + (f"; flagged: {dict(zip(*np.unique([f for f in self.flags if f], return_counts=True)))}"
                    if not ok.all() else ""))
+        if self.drift_columns:
+            cols = dict(self.drift_columns)
+            p, ps = cols["p [1]"], cols["p_sigma [1]"]
+            text += (f"; drift tracked ({ok.size / max(self.seconds, 1e-9):.1f} frames/s): p {p[0]:.8g} -> "
+                     f"{p[-1]:.8g} +- {ps[-1]:.2g}, a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
+                     f"+- {cols['a0_sigma [counts]'][-1]:.2g} counts")
+        return text
 
 
 def load_calibration(calibration: dict, covariance: np.ndarray | None, array: str = "array0"):
@@ -211,9 +224,30 @@ def load_calibration(calibration: dict, covariance: np.ndarray | None, array: st
     return code, edges, cal, (edge_index if covariance is not None else None)
 
 
+def durable_prior(calibration: dict, covariance: np.ndarray | None, array: str = "array0") -> ged.DurablePrior:
+    """The calibration of ``array`` as the durable estimator's prior (edges, geometry, aperture, a0, joint)."""
+    code, edges, cal, edge_index = load_calibration(calibration, covariance, array)
+    if covariance is None or not edge_index or any(k not in cal.cov_index for k in ("geometry", "aperture", "a0")):
+        raise EncoderRecordingError("--track-drift needs the calibration's covariance file (covariance_file with "
+                                    "edges, geometry, aperture and a0 of the array): re-run `selfcal calibrate "
+                                    "encoder --out CAL.yaml`")
+    edge_vars = sorted(edge_index)
+    idx = [edge_index[e] for e in edge_vars] + cal.cov_index["geometry"] + cal.cov_index["aperture"] \
+        + cal.cov_index["a0"]
+    return ged.DurablePrior(code, edges, edge_vars, cal.geometry, cal.geometry_free, cal.aperture, cal.a0,
+                            cal.noise_sigma, covariance[np.ix_(idx, idx)], cal.illumination_degree, cal.adc_max,
+                            cal.offset_rad)
+
+
 def measure_encoder(rec: Recording, calibration: dict, covariance: np.ndarray | None = None,
-                    array: str = "array0", frames: dict | None = None) -> MeasureResult:
-    """ML angle of every frame of ``array`` with the calibration; flagged frames get NaN and their flag."""
+                    array: str = "array0", frames: dict | None = None, track_drift: bool = False,
+                    drift: ged.DriftModel = ged.DriftModel()) -> MeasureResult:
+    """ML angle of every frame of ``array`` with the calibration; flagged frames get NaN and their flag.
+
+    ``track_drift``: durable self-calibration (:mod:`selfcal.graphs.encoder_durable`): the calibration is the
+    prior, iSAM2 follows the drifting geometry, aperture and dark level frame by frame (columns
+    ``drift_columns``) and refines the edges; the result carries the updated calibration.
+    """
     arrays = {a.name: a for a in read_encoder_arrays(rec, frames)}
     if array not in arrays:
         raise EncoderRecordingError(f"{rec.path}: no sensor {array!r} (arrays: {', '.join(arrays)})")
@@ -225,10 +259,75 @@ def measure_encoder(rec: Recording, calibration: dict, covariance: np.ndarray | 
     if data.n_diodes != int(calibration["arrays"][array]["n_diodes"]):
         raise EncoderRecordingError(f"{rec.path}/{array}: {data.n_diodes} diodes, the calibration is for "
                                     f"{calibration['arrays'][array]['n_diodes']}")
+    if track_drift:
+        return _measure_durable(data, calibration, covariance, array, drift)
     out = [ge.measure_frame(f, code, edges, cal, covariance, edge_index) for f in data.frames]
     return MeasureResult(data.t_ns, np.array([m.beta_rad if not m.flag else np.nan for m in out]),
                          np.array([m.sigma_rad if not m.flag else np.nan for m in out]),
                          np.array([m.sigma_noise_rad for m in out]), [m.flag for m in out], array)
+
+
+def _measure_durable(data, calibration: dict, covariance, array: str, drift: ged.DriftModel) -> MeasureResult:
+    prior = durable_prior(calibration, covariance, array)
+    start = time.perf_counter()
+    estimator = ged.DurableEncoder(prior, drift)
+    steps = [estimator.add_frame(int(t), f) for t, f in zip(data.t_ns, data.frames)]
+    seconds = time.perf_counter() - start
+    columns = []
+    for i, g in enumerate(prior.geometry_free):
+        name = enc.GEOMETRY_NAMES[g]
+        columns += [(f"{name} [1]", np.array([s.geometry[i] for s in steps])),
+                    (f"{name}_sigma [1]", np.array([s.geometry_sigma[i] for s in steps]))]
+    for i, name in enumerate(enc.APERTURE_NAMES):
+        columns += [(f"{name} [1]", np.array([s.aperture[i] for s in steps])),
+                    (f"{name}_sigma [1]", np.array([s.aperture_sigma[i] for s in steps]))]
+    columns += [("a0 [counts]", np.array([s.a0 for s in steps])),
+                ("a0_sigma [counts]", np.array([s.a0_sigma for s in steps]))]
+    updated, updated_cov = _updated_calibration(calibration, covariance, array, prior, estimator, data)
+    return MeasureResult(data.t_ns, np.array([s.beta_rad for s in steps]), np.array([s.beta_sigma_rad for s in steps]),
+                         np.full(len(steps), np.nan), [s.flag for s in steps], array, columns, updated, updated_cov,
+                         seconds)
+
+
+def _updated_calibration(calibration: dict, covariance: np.ndarray, array: str, prior: ged.DurablePrior,
+                         estimator: ged.DurableEncoder, data) -> tuple[dict, np.ndarray]:
+    """The calibration after a durable run: edges and the array's parameters replaced by the posterior, the
+    covariance's rows of those replaced by the posterior's joint covariance (cross terms with other arrays'
+    parameters, which the run did not see, set to zero)."""
+    mean, post = estimator.posterior()
+    out = copy.deepcopy(calibration)
+    E = len(prior.edge_vars)
+    nf = len(prior.geometry_free)
+    sd = np.sqrt(np.diag(post))
+    edges = np.asarray(out["edges_rad"], dtype=float)
+    edges[prior.edge_vars] = mean[:E]
+    sigma = [None if s is None else float(s) for s in out["edges_sigma_rad"]]
+    for e, s_e in zip(prior.edge_vars, sd[:E]):
+        sigma[e] = float(s_e)
+    out["edges_rad"], out["edges_sigma_rad"] = edges.tolist(), sigma
+    out["graduation_error_rad"] = (edges - prior.code.nominal_edge_angles()).tolist()
+    a = out["arrays"][array]
+    for i, g in enumerate(prior.geometry_free):
+        a["geometry"][enc.GEOMETRY_NAMES[g]] = float(mean[E + i])
+        a["geometry_sigma"][enc.GEOMETRY_NAMES[g]] = float(sd[E + i])
+    a["aperture"], a["aperture_sigma"] = mean[E + nf:E + nf + 2].tolist(), sd[E + nf:E + nf + 2].tolist()
+    a["a0_counts"], a["a0_sigma_counts"] = float(mean[-1]), float(sd[-1])
+    out["durable"] = {"array": array, "frames_used": int(estimator.n_frames), "frames_total": int(len(data.t_ns)),
+                      "last_timestamp_ns": int(data.t_ns[-1]) if len(data.t_ns) else None,
+                      "process_noise_per_sqrt_s": {"p_rel": estimator.drift.p_rel, "q": estimator.drift.q,
+                                                   "aperture_rel": estimator.drift.aperture_rel,
+                                                   "a0_counts": estimator.drift.a0_counts}}
+    out.setdefault("notes", []).append(
+        f"updated by durable self-calibration (iSAM2) over {estimator.n_frames} frames of {array}; positions are "
+        "those of the original calibration")
+    _, _, cal, edge_index = load_calibration(calibration, covariance, array)
+    idx = [edge_index[e] for e in prior.edge_vars] + cal.cov_index["geometry"] + cal.cov_index["aperture"] \
+        + cal.cov_index["a0"]
+    cov = covariance.copy()
+    cov[idx, :] = 0.0
+    cov[:, idx] = 0.0
+    cov[np.ix_(idx, idx)] = post
+    return out, cov
 
 
 def encoder_audit_system(rec: Recording, frames: dict | None = None):

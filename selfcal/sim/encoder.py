@@ -19,6 +19,13 @@ Truth conventions
 * Temperature: ``p_J = p (1 + scale_per_degC (T_J - T_ref))`` (the optional drift), with ``T`` in the
   ``temperature [degC]`` column.
 * Light intensity: the illumination profile times ``1 + intensity_drift`` per frame (random, per frame).
+* Slow drift (durable self-calibration, a long run of ordinary measurements): with the temperature
+  ``dT_J = T_J - T_ref``, the dark level ``a0_J = a0 + a0_per_degC dT_J`` (dark current, ADC offset), the
+  aperture ``(t-, t+)_J = (t-, t+) (1 + aperture_per_degC dT_J)`` (the shadow's blur grows with the disk-array
+  gap) and the light ``(1 + intensity_per_degC dT_J)`` (an LED dims as it warms), next to ``p_J`` above.
+  ``temperature_profile="ramp"`` runs the temperature from ``T_ref`` to ``T_ref + temperature_range_degC``
+  (a run that starts where its calibration was made); ``"centred"`` (default) sweeps it about ``T_ref``.
+  Edges do not drift: a disk's uniform expansion leaves its angles unchanged.
 """
 from __future__ import annotations
 
@@ -76,6 +83,10 @@ class EncoderScenario:
     prnu_sigma: float = 0.0                      # per-diode gain (1 sigma, relative)
     temperature_scale_per_degC: float = 0.0      # dp/p per degC (temperature-dependent scale)
     temperature_range_degC: float = 0.0          # temperature swing over the recording
+    temperature_profile: str = "centred"         # "centred" about T_ref, or "ramp" from T_ref upwards
+    a0_per_degC: float = 0.0                     # dark level drift, counts per degC
+    aperture_per_degC: float = 0.0               # relative aperture (blur) change per degC
+    intensity_per_degC: float = 0.0              # relative light level change per degC
     frame_period_s: float = 1.0
     seed: int = 0
     positions_rad: np.ndarray | None = None      # explicit positions (else spread over a revolution)
@@ -114,10 +125,14 @@ class EncoderScenario:
         t = np.arange(N) * self.frame_period_s
         self.t_ns = T0_NS + np.round(t * 1e9).astype(np.int64)
         phase = np.linspace(0, 1, N)
-        self.temperature_degC = (TEMPERATURE_REF_DEGC + self.temperature_range_degC * (phase - 0.5)
+        if self.temperature_profile not in ("centred", "ramp"):
+            raise ValueError(f"temperature_profile must be 'centred' or 'ramp', not {self.temperature_profile!r}")
+        start = -0.5 if self.temperature_profile == "centred" else 0.0
+        self.temperature_degC = (TEMPERATURE_REF_DEGC + self.temperature_range_degC * (phase + start)
                                  + 0.2 * np.sin(2 * math.pi * 3 * phase))
         base = np.array([1.0, self.profile[0], self.profile[1]]) * self.intensity
-        self.illumination = [base[None, :] * (1 + self.intensity_drift * rng.normal(size=(N, 1)))
+        light = 1 + self.intensity_per_degC * (self.temperature_degC - TEMPERATURE_REF_DEGC)
+        self.illumination = [base[None, :] * (1 + self.intensity_drift * rng.normal(size=(N, 1))) * light[:, None]
                              for _ in range(self.n_arrays)]
         self.gain = [self.prnu_sigma * rng.normal(size=self.n_diodes) for _ in range(self.n_arrays)]
         for k in range(self.n_arrays):
@@ -134,6 +149,14 @@ class EncoderScenario:
         g[0] *= 1 + self.temperature_scale_per_degC * (self.temperature_degC[J] - TEMPERATURE_REF_DEGC)
         return g
 
+    def aperture_at(self, k: int, J: int) -> np.ndarray:
+        """Array k's aperture ``(t-, t+)`` for frame J (temperature-dependent blur)."""
+        return self.aperture[k] * (1 + self.aperture_per_degC * (self.temperature_degC[J] - TEMPERATURE_REF_DEGC))
+
+    def a0_at(self, J: int) -> float:
+        """Dark level for frame J (temperature-dependent), counts."""
+        return self.a0 + self.a0_per_degC * (self.temperature_degC[J] - TEMPERATURE_REF_DEGC)
+
     def exact_frames(self, k: int = 0) -> np.ndarray:
         """Noise-free frames (N, n) of array k."""
         s = enc.diode_centres(self.n_diodes)
@@ -143,8 +166,9 @@ class EncoderScenario:
             b = beta + self.offsets_rad[k]
             edges, alpha = enc.visible_bars(self.code, b, geometry, self.edges_rad, margin_s=0.3)
             w = enc.edge_weights(self.code, edges, geometry)
-            frames[J], _ = enc.frame_signal(s, alpha, w, b, geometry, self.aperture[k], self.illumination[k][J],
-                                            self.a0, self.gain[k] if self.prnu_sigma > 0 else None,
+            frames[J], _ = enc.frame_signal(s, alpha, w, b, geometry, self.aperture_at(k, J),
+                                            self.illumination[k][J], self.a0_at(J),
+                                            self.gain[k] if self.prnu_sigma > 0 else None,
                                             jacobians=False)
         return frames
 
@@ -200,7 +224,12 @@ class EncoderScenario:
                         "gain": self.gain[k]} for k in range(self.n_arrays)],
             "eccentricity": list(self.eccentricity), "noise_sigma": self.noise_sigma,
             "temperature_scale_per_degC": self.temperature_scale_per_degC,
-            "temperature_ref_degC": TEMPERATURE_REF_DEGC, "prnu_sigma": self.prnu_sigma}, "truth")
+            "temperature_ref_degC": TEMPERATURE_REF_DEGC, "prnu_sigma": self.prnu_sigma,
+            "drift": {"a0_per_degC": self.a0_per_degC, "aperture_per_degC": self.aperture_per_degC,
+                      "intensity_per_degC": self.intensity_per_degC,
+                      "p": [float(self.geometry_at(0, J)[0]) for J in range(self.n_positions)],
+                      "aperture": [self.aperture_at(0, J) for J in range(self.n_positions)],
+                      "a0": [self.a0_at(J) for J in range(self.n_positions)]}}, "truth")
 
     def write(self, path, seed: int | None = 0, overwrite: bool = False, reference: dict | None = None) -> Path:
         """Write the recording (``seed=None``: exact frames); ``reference={"every": 10, "sigma_rad": 1e-6}``
