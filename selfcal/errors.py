@@ -3,6 +3,13 @@ one line and exits 1.  Anything else is a bug and keeps its traceback."""
 from selfcal.graphs.solve import DegenerateDataError
 from selfcal.io.recording import RecordingError
 from selfcal.models.static_intervals import StaticDetectionError, TooFewStaticPosesError
+from selfcal.models.sphere import SphereNotFoundError
+from selfcal.io.pointcloud_errors import PointCloudError
+from selfcal.pipelines.qc_spec import QCSpecError
+from selfcal.pipelines.fleet import FleetError
+from selfcal.io.streams import StreamError
+from selfcal.pipelines.track import TrackError
 
 USER_ERRORS = (RecordingError, DegenerateDataError, TooFewStaticPosesError, StaticDetectionError, FileNotFoundError, FileExistsError,
-               NotADirectoryError, PermissionError)
+               NotADirectoryError, PermissionError, SphereNotFoundError, PointCloudError, QCSpecError, FleetError,
+               StreamError, TrackError)
