@@ -5,12 +5,11 @@ simulated voyage: roll and pitch RMS error against the truth, the residual drift
 tenth), the time, and the ratio patent/graph.  Then the real logs (static MPU-6050 tilts).  A PNG shows both
 methods against the truth.  Usage:
 
-    .venv/bin/python benchmarks/ship_vs_patent.py [--duration 3600] [--plot ship.png] [--json out.json]
+    .venv/bin/python benchmarks/ship_vs_patent.py [--quick] [--duration 3600] [--plot ship.png] [--json out.json]
 """
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -20,6 +19,8 @@ from selfcal.baselines.patent_003_drift import PatentDriftFilter, cutoff_between
 from selfcal.pipelines.ship import ship_inputs
 from selfcal.graphs.ship import ShipGraphOptions, ShipSmoother
 from selfcal.sim.ship import ShipScenario
+
+import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,10 +84,14 @@ def plot(traces, path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=3600.0)
-    parser.add_argument("--plot", default="ship_vs_patent.png")
-    parser.add_argument("--json")
+    parser.add_argument("--duration", type=float, default=None,
+                        help="voyage length in s (default 3600; 600 with --quick)")
+    parser.add_argument("--plot", default=str(_schema.RESULTS / "ship_vs_patent.png"))
+    _schema.add_arguments(parser, "ship_vs_patent")
     args = parser.parse_args()
+    args.duration = args.duration or (QUICK_DURATION_S if args.quick else 3600.0)
+    Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
     results, traces = {}, {}
     for kind in ("calm", "heave", "turning"):
         for remove in (True, False):
@@ -104,8 +109,85 @@ def main():
                   f"pitch {p['pitch_rms_deg'] / b['pitch_rms_deg']:.2f}")
     plot(traces, args.plot)
     print(f"\nplot: {args.plot}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
+    real = real_logs(args.quick)
+    rows = schema_rows(results, args.duration) + [
+        _schema.row(f"real log {name}: "
+                    f"{'max tilt error' if r['compared'] == 'throughout' else 'final vs first static tilt'} ({label})",
+                    "deg", r[label]["metric_deg"], r["patent"]["metric_deg"])
+        for name, r in real.items() for label in ("graph batch", "graph iSAM2")]
+    _schema.write(args.json, "ship_vs_patent", "ship", args.quick, time.perf_counter() - started, rows,
+                  {"duration_s": args.duration, "scenarios": results, "real_logs": real})
+    print(f"results: {args.json}")
+
+
+QUICK_DURATION_S = 600.0
+SUNSIDED = ROOT.parent / "shared" / "data" / "sunsided_mpu6050_hmc5883l_marg"
+REAL_LOGS = {  # scenario -> (what is compared, what the truth is known to be)
+    "unmoved-with-x-pointing-forward-10min": ("throughout", "static: the tilt of the board throughout"),
+    "unmoved-with-x-pointing-forward": ("throughout", "static: the tilt of the board throughout"),
+    "rotate-ccw-around-z-pointing-up": ("throughout", "two turns about the vertical: the tilt never changes"),
+    "roll-and-tilt-at-45-90": ("end", "tilts by hand, back to the start: the final static tilt equals the first"),
+}
+REAL_CUTOFF_HZ = 0.05  # the patent's rule needs a vessel's periods; a hand-held board has none: 20 s
+
+
+def real_logs(quick: bool) -> dict:
+    """Both methods on the real MPU-6050 logs (sunsided, EUPL: read in place).  The reference tilt is the
+    accelerometer's mean over the first 2 s of the log (the board is at rest there): on static logs every
+    estimate should stay at it (drift), on the turn about z too (the tilt never changes); after tilting by hand
+    the board returns to its start, so the last 2 s are compared with the first."""
+    from selfcal.io.importers import import_sunsided_mpu6050
+    from selfcal.models.ship import tilt_from_specific_force
+    out = {}
+    if not SUNSIDED.is_dir():
+        print(f"\n(real logs skipped: {SUNSIDED} not present)")
+        return out
+    for scenario, (compared, truth) in REAL_LOGS.items():
+        if quick and "10min" in scenario:
+            continue
+        inputs = ship_inputs(import_sunsided_mpu6050(SUNSIDED / scenario))
+        reference = np.degrees(tilt_from_specific_force(inputs.accel_m_s2[inputs.t_s < 2.0].mean(axis=0)))
+        batch = ShipSmoother(inputs, ShipGraphOptions(estimate_lever_arm=False)).batch()
+        online = ShipSmoother(inputs, ShipGraphOptions(estimate_lever_arm=False)).online()
+        patent = PatentDriftFilter(REAL_CUTOFF_HZ, remove_known_acceleration=False).run(
+            inputs.t_s, inputs.gyro_rad_s, inputs.accel_m_s2, None)
+        row = {"truth": truth, "compared": compared, "reference_roll_pitch_deg": reference.tolist(), "duration_s": float(inputs.t_s[-1])}
+        print(f"\n== real log {scenario} ({inputs.t_s[-1]:.0f} s; {truth}); reference roll/pitch "
+              f"{reference[0]:+.2f}/{reference[1]:+.2f} deg")
+        for label, t, roll, pitch in (("patent", inputs.t_s, patent.roll, patent.pitch),
+                                      ("graph batch", batch.t_s, batch.roll, batch.pitch),
+                                      ("graph iSAM2", online.t_s, online.roll, online.pitch)):
+            err = np.degrees(np.stack([roll, pitch], axis=1)) - reference
+            settled = t > 5.0  # every method starts from the accelerometer; the first seconds are the filters' start
+            end = t > t[-1] - 2.0
+            if compared == "throughout":
+                metric = float(np.max(np.abs(err[settled])))
+                text = f"max |tilt error| {metric:.3f} deg"
+            else:
+                metric = float(np.max(np.abs(err[end].mean(axis=0))))
+                text = f"|final - first static tilt| {metric:.3f} deg"
+            row[label] = {"metric_deg": metric, "final_error_deg": err[end].mean(axis=0).tolist()}
+            print(f"  {label:12s} {text}; final roll/pitch error {err[end].mean(axis=0)[0]:+.3f}/"
+                  f"{err[end].mean(axis=0)[1]:+.3f} deg")
+        out[scenario] = row
+    return out
+
+
+def schema_rows(results: dict, duration_s: float) -> list[dict]:
+    """The figures above as schema rows: graph (batch for accuracy, iSAM2 for the online path) vs the patent."""
+    rows = []
+    for name, res in results.items():
+        p, b, o = res["patent"], res["graph_batch"], res["graph_isam2"]
+        rows += [_schema.row(f"roll RMSE, {name} (batch)", "deg", b["roll_rms_deg"], p["roll_rms_deg"]),
+                 _schema.row(f"pitch RMSE, {name} (batch)", "deg", b["pitch_rms_deg"], p["pitch_rms_deg"]),
+                 _schema.row(f"roll RMSE, {name} (iSAM2 online)", "deg", o["roll_rms_deg"], p["roll_rms_deg"]),
+                 _schema.row(f"pitch RMSE, {name} (iSAM2 online)", "deg", o["pitch_rms_deg"], p["pitch_rms_deg"])]
+        if "removed" in name:
+            rows += [_schema.row(f"time, {name} (batch)", "s", b["seconds"], p["seconds"]),
+                     _schema.row(f"real-time factor, {name} (iSAM2 online)", "x", duration_s / o["seconds"],
+                                 duration_s / p["seconds"], better="higher",
+                                 note="voyage duration / compute time; baseline: the patent's filter")]
+    return rows
 
 
 if __name__ == "__main__":

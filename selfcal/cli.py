@@ -122,6 +122,8 @@ def _cmd_smooth_ship(args) -> None:
 def _cmd_smooth_scan(args) -> None:
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.scan import smooth_scan
+    if args.out and Path(args.out).suffix.lower() not in (".ply", ".pcd", ".xyz", ".pts"):
+        raise UsageError(f"{args.out}: the corrected scan is written as .ply, .pcd, .xyz or .pts")
     est = smooth_scan(read_recording(args.recording), online=args.online)
     print(est.summary())
     if args.out:
@@ -436,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = verbs.add_parser("audit", help="find what the model gets wrong in a recording, name the cause, measure the gain")
     p.add_argument("recording")
-    p.add_argument("--system", required=True, choices=["imu", "imu-pair", "encoder", "scan"])
+    p.add_argument("--system", required=True, choices=["imu", "imu-pair", "encoder", "scan", "ship", "tracker"])
     p.add_argument("--base", help="base model: imu: bias (default) or standard; imu-pair: rotation")
     p.add_argument("--imu", help="IMU to audit (imu) or reference IMU (imu-pair); default: the first")
     p.add_argument("--imu1", help="second IMU for imu-pair; default: the second")

@@ -220,8 +220,12 @@ def run_audit(system: AuditSystem, max_findings: int = 8, alpha: float = FAMILY_
         if not open_candidates:
             break
         trials = []
+        # residuals correlated in time (waves, vibration) hold fewer independent samples than rows: a system
+        # that knows it gives the variance inflation 1 + 2 sum rho_k, and the F test uses the effective sizes
+        inflation = system.residual_correlation(fit) if hasattr(system, "residual_correlation") else 1.0
         for cand in open_candidates:
             f_stat, dof, dof_den = score_test(*system.extend(fit, cand))
+            f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
             trials.append(Trial(cand, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof))
         trials.sort(key=lambda t: t.p_value)
         threshold = alpha / len(open_candidates)

@@ -4,9 +4,12 @@ Variables: ``R_k`` (Rot3, body -> local level) at keyframes every ``keyframe_s``
 per bias segment of ``bias_segment_s``.  Factors, all GTSAM's own:
 
 * ``AHRSFactor(R_k, R_k+1, b_j)``: gyro preintegrated between keyframes (``PreintegratedAhrsMeasurements``),
-* ``AttitudeFactorRot3(R_k)``: the up direction measured by the accelerometer (total force, known accelerations
-  removed) against the world's up, with a sigma that grows with the disturbance the accelerometer itself shows
-  (|f| departing from g: heave, surge, vibration), so a rough sea weighs the tilt less instead of biasing it,
+* tilt factor on ``R_k`` (:func:`selfcal.factors.ship.tilt_factor`): the up direction measured by the
+  accelerometer (total force, known accelerations removed) against the world's up, with a sigma that grows with
+  the disturbance the accelerometer itself shows (|f| departing from g: heave, surge, vibration), so a rough sea
+  weighs the tilt less instead of biasing it; optionally with the accelerometer's lever arm ``l`` (Vector3, m)
+  as an unknown — an accelerometer high on a mast sees the roll's angular acceleration as a tilt, which a
+  smoother averages out but a filter cannot — and the speed log's scale error ``k`` (Vector1),
 * ``BetweenFactorVector(b_j, b_j+1)``: bias random walk, and priors fixing the first attitude (yaw is a gauge:
   without a compass the data cannot tell it) and the first bias.
 """
@@ -17,10 +20,16 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from scipy.signal import savgol_filter
+
+from selfcal.factors.ship import tilt_factor
 from selfcal.graphs.solve import optimize
-from selfcal.models import ship, so3
+from selfcal.models import imu, ship
 
 R_KEY, B_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B
+LEVER_ARM_KEY, SPEED_SCALE_KEY = gtsam.symbol("l", 0), gtsam.symbol("k", 0)
+RELATIVE_TOLERANCE = 1e-7  # LM converges in a few iterations, then crawls along the weakly determined lever arm
+# components for dozens more at a relative gain of 1e-9 each (attitudes change by nanoradians)
 
 
 @dataclass
@@ -34,6 +43,7 @@ class ShipInputs:
     gravity_m_s2: float = 9.80665
     gyro_noise_density: float = 1e-4  # rad s^-1 / sqrt(Hz)
     gyro_random_walk: float = 1e-5  # rad s^-2 / sqrt(Hz)
+    speed_rate_m_s2: np.ndarray | None = None  # d speed / dt on the IMU times, when the source gives it
 
 
 @dataclass(frozen=True)
@@ -44,6 +54,13 @@ class ShipGraphOptions:
     disturbance_gain: float = 3.0  # tilt sigma grows by this times ||f| - g| / g
     remove_known_acceleration: bool = True
     initial_bias_sigma_rad_s: float = 0.1  # uncalibrated MEMS gyros start degrees per second off
+    estimate_lever_arm: bool = True
+    lever_arm_m: tuple = (0.0, 0.0, 0.0)  # known (or prior mean) accelerometer position from the centre of rotation
+    lever_arm_prior_sigma_m: float = 20.0  # a ship's size: components the motion cannot show stay near the prior
+    estimate_speed_scale: bool = False
+    speed_scale: float = 0.0  # known speed-log scale error (used when not estimated)
+    speed_scale_prior_sigma: float = 0.2
+    angular_acceleration_window_s: float = 2.0  # Savitzky-Golay window for w_dot (centred: online, a 1 s delay)
 
 
 @dataclass
@@ -54,113 +71,220 @@ class ShipEstimate:
     yaw: np.ndarray
     gyro_bias: np.ndarray  # (K, 3) at the keyframes
     seconds: float = 0.0
+    lever_arm_m: np.ndarray | None = None  # estimated (final value), when in the graph
+    speed_scale: float | None = None
 
 
-def corrected_specific_force(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
-    """The accelerometer minus the accelerations the speed log and gyro explain (when asked and possible)."""
+def known_acceleration(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
+    """The hull acceleration the speed log and gyro explain (zero when not asked for or without a speed)."""
     if not remove_known or inputs.speed_m_s is None:
-        return inputs.accel_m_s2
-    speed_rate = np.gradient(inputs.speed_m_s, inputs.t_s)
-    return inputs.accel_m_s2 - ship.known_acceleration_S(inputs.speed_m_s, speed_rate, inputs.gyro_rad_s[:, 2])
+        return np.zeros_like(inputs.accel_m_s2)
+    # a speed log's noise (cm/s per sample) differentiated sample by sample would be a surge "acceleration" of
+    # tenths of a degree of tilt; a hull's surge changes over tens of seconds, so the rate is taken over 5 s
+    speed_rate = (inputs.speed_rate_m_s2 if inputs.speed_rate_m_s2 is not None
+                  else smooth_derivative(inputs.t_s, inputs.speed_m_s, SPEED_RATE_WINDOW_S))
+    return ship.known_acceleration_S(inputs.speed_m_s, speed_rate, inputs.gyro_rad_s[:, 2])
 
 
-def _tilt_noise(f: np.ndarray, g: float, options: ShipGraphOptions):
-    disturbance = abs(np.linalg.norm(f) - g) / g
-    return gtsam.noiseModel.Isotropic.Sigma(2, options.tilt_sigma_rad + options.disturbance_gain * disturbance)
+SPEED_RATE_WINDOW_S = 5.0
+SAVGOL_ORDER = 4  # quartic: a flat response up to the roll frequencies over a window long enough to quiet
+# the gyro noise (a noisy w_dot would bias the lever arm low: errors in the variables)
+
+
+def smooth_derivative(t_s: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
+    """d x / dt along axis 0: Savitzky-Golay (quadratic over ``window_s``, centred), robust to sample noise."""
+    rate = 1.0 / np.median(np.diff(t_s))
+    n = max(5, int(round(window_s * rate)) | 1)
+    if len(t_s) <= n:
+        return np.gradient(x, t_s, axis=0)
+    return savgol_filter(x, n, SAVGOL_ORDER, deriv=1, delta=1.0 / rate, axis=0)
+
+
+def tilt_sigma_rad(f: np.ndarray, g: float, options: ShipGraphOptions) -> float:
+    """The tilt measurement's sigma: a floor plus the disturbance |f| - g the accelerometer itself shows."""
+    return options.tilt_sigma_rad + options.disturbance_gain * abs(np.linalg.norm(f) - g) / g
+
+
+def tilt_noise(f: np.ndarray, g: float, options: ShipGraphOptions):
+    return gtsam.noiseModel.Isotropic.Sigma(2, tilt_sigma_rad(f, g, options))
+
+
+@dataclass
+class Keyframe:
+    """What one keyframe brings: the gyro samples since the previous keyframe and the accelerometer at it."""
+
+    t_s: float
+    gyro_rad_s: np.ndarray  # (n, 3) samples from the previous keyframe up to this one (empty for the first)
+    dt_s: np.ndarray  # (n,)
+    accel_m_s2: np.ndarray  # (3,) specific force measured at t_s
+    A_S: np.ndarray  # (3, 3) lever-arm matrix [w_dot]x + [w]x^2 at t_s
+    a_known_S: np.ndarray  # (3,) hull acceleration known from the speed log and the yaw rate
+    has_speed: bool = False
+
+
+def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
+    """Keyframes every ``options.keyframe_s`` from a whole recording (derivatives centred: offline)."""
+    t = inputs.t_s
+    index = np.searchsorted(t, np.arange(t[0], t[-1], options.keyframe_s))
+    a_known = known_acceleration(inputs, options.remove_known_acceleration)
+    A = imu.lever_arm_jacobian(inputs.gyro_rad_s, smooth_derivative(t, inputs.gyro_rad_s,
+                                                                     options.angular_acceleration_window_s))
+    dt = np.diff(t)
+    frames, previous = [], None
+    for i in index:
+        span = slice(previous, i) if previous is not None else slice(0, 0)
+        frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], inputs.accel_m_s2[i], A[i],
+                               a_known[i], inputs.speed_m_s is not None and options.remove_known_acceleration))
+        previous = i
+    return frames
+
+
+class ShipGraph:
+    """The graph of one voyage, grown keyframe by keyframe (the same factors for batch, iSAM2 and live use)."""
+
+    def __init__(self, options: ShipGraphOptions, gravity_m_s2: float, gyro_noise_density: float,
+                 gyro_random_walk: float):
+        self.options, self.gravity_m_s2, self.gyro_random_walk = options, gravity_m_s2, gyro_random_walk
+        self.params = gtsam.PreintegratedRotationParams()
+        self.params.setGyroscopeCovariance(gyro_noise_density**2 * np.eye(3))
+        self.t0_s: float | None = None
+        self.k = -1  # index of the last keyframe added
+
+    def bias_key(self, t_s: float) -> int:
+        return B_KEY(int((t_s - self.t0_s) // self.options.bias_segment_s))
+
+    def tilt_start(self, frame: Keyframe) -> gtsam.Rot3:
+        roll, pitch = ship.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)
+        return gtsam.Rot3.Ypr(0.0, float(pitch), float(roll))
+
+    def add(self, frame: Keyframe, estimate: gtsam.Values | None, propagate: bool):
+        """(factors, new values) that ``frame`` brings as keyframe k+1.
+
+        ``estimate`` holds the current solution or start values (the bias to preintegrate about, the attitude
+        the gyro carries forward); without ``propagate`` roll and pitch start at the accelerometer tilt.
+        """
+        options = self.options
+        self.k += 1
+        k = self.k
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        speed_scale = options.estimate_speed_scale and frame.has_speed
+        f_corrected = frame.accel_m_s2 - frame.a_known_S
+        a_known = frame.a_known_S if speed_scale else (1.0 + options.speed_scale) * frame.a_known_S
+        graph.add(tilt_factor(tilt_noise(f_corrected, self.gravity_m_s2, options), R_KEY(k), frame.accel_m_s2,
+                              frame.A_S, a_known, LEVER_ARM_KEY if options.estimate_lever_arm else None,
+                              SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m))
+        if k == 0:
+            self.t0_s = frame.t_s
+            self.previous_t_s = frame.t_s
+            if options.estimate_lever_arm:
+                graph.add(gtsam.PriorFactorVector(LEVER_ARM_KEY, np.asarray(options.lever_arm_m, dtype=float),
+                                                  gtsam.noiseModel.Isotropic.Sigma(3, options.lever_arm_prior_sigma_m)))
+                values.insert(LEVER_ARM_KEY, np.asarray(options.lever_arm_m, dtype=float))
+            if speed_scale:
+                graph.add(gtsam.PriorFactorVector(SPEED_SCALE_KEY, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(
+                    1, options.speed_scale_prior_sigma)))
+                values.insert(SPEED_SCALE_KEY, np.zeros(1))
+            start = self.tilt_start(frame)
+            graph.add(gtsam.PriorFactorRot3(R_KEY(0), start, gtsam.noiseModel.Diagonal.Sigmas(np.array([0.2, 0.2, 1e-3]))))
+            graph.add(gtsam.PriorFactorVector(self.bias_key(frame.t_s), np.zeros(3),
+                                              gtsam.noiseModel.Isotropic.Sigma(3, options.initial_bias_sigma_rad_s)))
+            values.insert(R_KEY(0), start)
+            values.insert(self.bias_key(frame.t_s), np.zeros(3))
+            return graph, values
+        previous_bias, bias = self.bias_key(self.previous_t_s), self.bias_key(frame.t_s)
+        self.previous_t_s = frame.t_s
+        bias_hat = estimate.atVector(previous_bias) if estimate is not None else np.zeros(3)
+        pim = gtsam.PreintegratedAhrsMeasurements(self.params, bias_hat)
+        for w, dt in zip(frame.gyro_rad_s, frame.dt_s):
+            pim.integrateMeasurement(w, float(dt))
+        graph.add(gtsam.AHRSFactor(R_KEY(k - 1), R_KEY(k), previous_bias, pim))
+        if bias != previous_bias:
+            graph.add(gtsam.BetweenFactorVector(previous_bias, bias, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
+                3, self.gyro_random_walk * np.sqrt(options.bias_segment_s))))
+            values.insert(bias, bias_hat)
+        propagated = estimate.atRot3(R_KEY(k - 1)).compose(pim.deltaRij())
+        if not propagate:  # batch: roll and pitch from the accelerometer (a gyro chain from a bias of degrees per
+            # second would wrap around before LM could pull it back), heading carried by the gyro (the data say
+            # nothing else about it, and a heading left at zero costs LM dozens of iterations)
+            tilt = self.tilt_start(frame).ypr()
+            propagated = gtsam.Rot3.Ypr(propagated.ypr()[0], tilt[1], tilt[2])
+        values.insert(R_KEY(k), propagated)
+        return graph, values
+
+
+class OnlineShip:
+    """Incremental fixed-lag smoother (iSAM2 inside): memory and time per keyframe stay bounded over any voyage.
+
+    ``add(frame)`` returns the filtered attitude (roll, pitch, yaw, rad), the current gyro bias and the 3x3
+    marginal covariance of the attitude (rad^2, tangent space of R_W_S).
+    """
+
+    def __init__(self, graph: ShipGraph, lag_s: float = 60.0):
+        params = gtsam.ISAM2Params()
+        params.setFactorization("QR")  # Cholesky met indeterminate systems on long, tightly linked chains
+        self.graph, self.smoother = graph, gtsam.IncrementalFixedLagSmoother(lag_s, params)
+        self.estimate = gtsam.Values()
+
+    def add(self, frame: Keyframe, covariance: bool = False):
+        g, v = self.graph.add(frame, self.estimate if self.graph.k >= 0 else None, propagate=True)
+        k = self.graph.k
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        # the constants and the current bias are re-stamped every keyframe so the window never drops them
+        for key in (R_KEY(k), self.graph.bias_key(frame.t_s), LEVER_ARM_KEY, SPEED_SCALE_KEY):
+            if v.exists(key) or self.estimate.exists(key):
+                stamps.insert((key, frame.t_s))
+        self.smoother.update(g, v, stamps)
+        self.estimate = self.smoother.calculateEstimate()
+        yaw, pitch, roll = self.estimate.atRot3(R_KEY(k)).ypr()
+        cov = self.smoother.marginalCovariance(R_KEY(k)) if covariance else None
+        return (roll, pitch, yaw), self.estimate.atVector(self.graph.bias_key(frame.t_s)), cov
 
 
 class ShipSmoother:
-    """Builds the graph keyframe by keyframe; ``batch()`` solves it at once, ``online()`` feeds iSAM2 as it goes."""
+    """One recorded voyage: ``batch()`` solves the whole graph at once, ``online()`` replays it keyframe by
+    keyframe through :class:`OnlineShip` as a live system would."""
 
     def __init__(self, inputs: ShipInputs, options: ShipGraphOptions = ShipGraphOptions()):
         self.inputs, self.options = inputs, options
-        t = inputs.t_s
-        self.keyframe_index = np.searchsorted(t, np.arange(t[0], t[-1], options.keyframe_s))
-        self.f = corrected_specific_force(inputs, options.remove_known_acceleration)
-        params = gtsam.PreintegratedRotationParams()
-        params.setGyroscopeCovariance(inputs.gyro_noise_density**2 * np.eye(3))
-        self.params = params
+        self.keyframes = keyframes_from_inputs(inputs, options)
 
-    def _bias_of(self, k: int) -> int:
-        return B_KEY(int(self.inputs.t_s[self.keyframe_index[k]] - self.inputs.t_s[0]) // int(self.options.bias_segment_s))
-
-    def _initial_rotation(self, k: int) -> gtsam.Rot3:
-        roll, pitch = ship.tilt_from_specific_force(self.f[self.keyframe_index[k]])
-        return gtsam.Rot3.Ypr(0.0, float(pitch), float(roll))
-
-    def factors_for(self, k: int, values_estimate=None, online: bool = False):
-        """New factors and initial values that keyframe k brings (k = 0: priors); ``values_estimate`` holds
-        the current estimate (the bias to preintegrate about, and online the attitude to propagate)."""
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        i = self.keyframe_index[k]
-        up = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
-        f_k = self.f[i]
-        graph.add(gtsam.AttitudeFactorRot3(R_KEY(k), up, _tilt_noise(f_k, self.inputs.gravity_m_s2, self.options),
-                                           gtsam.Unit3(f_k / np.linalg.norm(f_k))))
-        bias_key = self._bias_of(k)
-        if k == 0:
-            graph.add(gtsam.PriorFactorRot3(R_KEY(0), self._initial_rotation(0),
-                                            gtsam.noiseModel.Diagonal.Sigmas(np.array([0.2, 0.2, 1e-3]))))
-            graph.add(gtsam.PriorFactorVector(bias_key, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
-                3, self.options.initial_bias_sigma_rad_s)))
-            values.insert(R_KEY(0), self._initial_rotation(0))
-            values.insert(bias_key, np.zeros(3))
-            return graph, values
-        j = self.keyframe_index[k - 1]
-        previous_bias = self._bias_of(k - 1)
-        bias_hat = values_estimate.atVector(previous_bias) if values_estimate is not None else np.zeros(3)
-        pim = gtsam.PreintegratedAhrsMeasurements(self.params, bias_hat)
-        t = self.inputs.t_s
-        for s in range(j, i):
-            pim.integrateMeasurement(self.inputs.gyro_rad_s[s], float(t[s + 1] - t[s]))
-        graph.add(gtsam.AHRSFactor(R_KEY(k - 1), R_KEY(k), previous_bias, pim))
-        if bias_key != previous_bias:
-            dt = self.options.bias_segment_s
-            graph.add(gtsam.BetweenFactorVector(previous_bias, bias_key, np.zeros(3),
-                                                gtsam.noiseModel.Isotropic.Sigma(
-                                                    3, self.inputs.gyro_random_walk * np.sqrt(dt))))
-            values.insert(bias_key, bias_hat)
-        if online:  # propagate the latest estimate with the gyro
-            values.insert(R_KEY(k), values_estimate.atRot3(R_KEY(k - 1)).compose(pim.deltaRij()))
-        else:  # batch: start every keyframe at its accelerometer tilt; a gyro chain from an unknown bias of
-            # degrees per second would wrap around before LM could pull it back
-            values.insert(R_KEY(k), self._initial_rotation(k))
-        return graph, values
+    def _graph(self) -> ShipGraph:
+        return ShipGraph(self.options, self.inputs.gravity_m_s2, self.inputs.gyro_noise_density,
+                         self.inputs.gyro_random_walk)
 
     def batch(self) -> ShipEstimate:
         import time
         start = time.perf_counter()
+        builder = self._graph()
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        for k in range(len(self.keyframe_index)):
-            g, v = self.factors_for(k, values if k else None)
+        for frame in self.keyframes:
+            g, v = builder.add(frame, values if builder.k >= 0 else None, propagate=False)
             graph.push_back(g)
             values.insert(v)
-        result = optimize(graph, values, max_iterations=50)
-        return self._estimate(result, time.perf_counter() - start)
+        result = optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE)
+        ypr = np.array([result.atRot3(R_KEY(k)).ypr() for k in range(len(self.keyframes))])
+        bias = np.array([result.atVector(builder.bias_key(f.t_s)) for f in self.keyframes])
+        return ShipEstimate(self._times(), ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, time.perf_counter() - start,
+                            *_constants(result))
 
-    def online(self) -> ShipEstimate:
-        """iSAM2, one keyframe at a time; the returned attitudes are the filtered ones (each as first solved)."""
+    def online(self, lag_s: float = 60.0) -> ShipEstimate:
+        """The filtered attitudes (each as first solved), replayed through :class:`OnlineShip`."""
         import time
         start = time.perf_counter()
-        params = gtsam.ISAM2Params()
-        params.setFactorization("QR")  # Cholesky met indeterminate systems on long, tightly linked chains
-        isam = gtsam.ISAM2(params)
-        current = gtsam.Values()
-        rolls, pitches, yaws, biases = [], [], [], []
-        for k in range(len(self.keyframe_index)):
-            g, v = self.factors_for(k, current if k else None, online=True)
-            isam.update(g, v)
-            current = isam.calculateEstimate()
-            ypr = current.atRot3(R_KEY(k)).ypr()
-            yaws.append(ypr[0])
-            pitches.append(ypr[1])
-            rolls.append(ypr[2])
-            biases.append(current.atVector(self._bias_of(k)))
-        t = self.inputs.t_s[self.keyframe_index]
-        return ShipEstimate(t, np.array(rolls), np.array(pitches), np.array(yaws), np.array(biases),
-                            time.perf_counter() - start)
+        online = OnlineShip(self._graph(), lag_s)
+        attitudes, biases = [], []
+        for frame in self.keyframes:
+            rpy, bias, _ = online.add(frame)
+            attitudes.append(rpy)
+            biases.append(bias)
+        rpy = np.array(attitudes)
+        return ShipEstimate(self._times(), rpy[:, 0], rpy[:, 1], rpy[:, 2], np.array(biases),
+                            time.perf_counter() - start, *_constants(online.estimate))
 
-    def _estimate(self, values, seconds) -> ShipEstimate:
-        ypr = np.array([values.atRot3(R_KEY(k)).ypr() for k in range(len(self.keyframe_index))])
-        bias = np.array([values.atVector(self._bias_of(k)) for k in range(len(self.keyframe_index))])
-        return ShipEstimate(self.inputs.t_s[self.keyframe_index], ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, seconds)
+    def _times(self) -> np.ndarray:
+        return np.array([f.t_s for f in self.keyframes])
+
+
+def _constants(values) -> tuple:
+    return (values.atVector(LEVER_ARM_KEY) if values.exists(LEVER_ARM_KEY) else None,
+            float(values.atVector(SPEED_SCALE_KEY)[0]) if values.exists(SPEED_SCALE_KEY) else None)

@@ -384,15 +384,18 @@ def import_sunsided_mpu6050(scenario_dir) -> Recording:
     -------
     Recording
         ``imu0`` in SI units (g -> 9.80665 m s^-2, deg/s -> rad/s) with the channel ``temperature [degC]``.
-        Upstream's gyro x axis counts clockwise (set-2 README); it is negated here so that gyro and
-        accelerometer share one right-handed frame.  EUPL-1.2 data: read in place, never copied into ``data/``.
+        Upstream's accelerometer reads -1 g on the axis pointing up (set-2 README: the gravity vector, not the
+        specific force), so it is negated.  Its gyro x counts clockwise (README) and so does its y: of the eight
+        sign choices, only x and y negated make the gyro turn the accelerometer's vector as the data do
+        (``df/dt = -w x f``, checked on the full-sphere sweep by ``tests/test_importers.py``).  EUPL-1.2
+        data: read in place, never copied into ``data/``.
     """
     folder = _require_dir(scenario_dir)
     file = folder / "mpu6050.csv.gz"
     table = _loadtxt(file, 8, delimiter=",", skiprows=1)
     t_ns = _seconds_to_ns(table[:, 0], file, first_line=2)
-    accel_m_s2 = table[:, 1:4] * STANDARD_GRAVITY_M_S2
-    gyro_rad_s = np.radians(table[:, 4:7]) * np.array([-1.0, 1.0, 1.0])
+    accel_m_s2 = -table[:, 1:4] * STANDARD_GRAVITY_M_S2
+    gyro_rad_s = np.radians(table[:, 4:7]) * np.array([-1.0, -1.0, 1.0])
     # mean rate: the samples arrive in bursts (median spacing 2 ms, gaps up to 70 ms), ~99 Hz on average
     rate_hz = (len(t_ns) - 1) * 1e9 / float(t_ns[-1] - t_ns[0])
     n_static = _leading_static_samples(gyro_rad_s, rate_hz)
@@ -407,7 +410,8 @@ def import_sunsided_mpu6050(scenario_dir) -> Recording:
         "gyroscope_random_walk": 1.0e-4,
         "noise_source": (f"noise densities: std over the first {n_static / rate_hz:.3g} s / sqrt(rate_hz); "
                          "random walks: assumed typical MEMS values, not measured"),
-        "axes": "gyro x negated from upstream (clockwise-positive there) to share the accelerometer's frame",
+        "axes": "accelerometer negated (upstream reports gravity, -1 g up); gyro x and y negated (clockwise-positive "
+                "upstream): one right-handed frame, x forward, y left, z up",
         "source": f"sunsided_mpu6050_hmc5883l_marg/{folder.name}",
     }
     channels = {"temperature": (table[:, 7], "degC")}

@@ -31,3 +31,28 @@ def known_acceleration_S(speed_m_s: np.ndarray, speed_rate_m_s2: np.ndarray, yaw
     v = np.asarray(speed_m_s, dtype=float)
     return np.stack([np.asarray(speed_rate_m_s2, dtype=float), v * np.asarray(yaw_rate_rad_s, dtype=float),
                      np.zeros_like(v)], axis=-1)
+
+
+def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: np.ndarray,
+                   a_known_S: np.ndarray, speed_scale: float = 0.0):
+    """Horizontal part of the measured force direction in the world frame: zero when the hull's up is measured.
+
+    The accelerometer sits at ``r_m_S`` from the centre of rotation, so it measures
+    ``f_S = f_centre + A_S r``, ``A_S = [w_dot]x + [w]x^2`` (:func:`selfcal.models.imu.lever_arm_jacobian`),
+    plus the known hull acceleration ``(1 + speed_scale) a_known_S`` (speed log scale error ``speed_scale``).
+    With ``u = unit(f_S - A_S r - (1 + k) a_known_S)`` the tilt residual is ``e = [I2 0] R_W_S u`` (rad, 2):
+    the world-frame horizontal components of the corrected force direction, zero when it is the world's up.
+
+    Returns ``e`` and its Jacobians on a right perturbation ``R Exp(xi)`` (2x3), on ``r`` (2x3) and on ``k``
+    (2x1): ``de/dxi = -P R [u]x``; ``du/df_c = (I - u u^T) / |f_c|``, ``df_c/dr = -A``, ``df_c/dk = -a_known``.
+    """
+    f_c = f_S - A_S @ r_m_S - (1.0 + speed_scale) * a_known_S
+    norm = np.linalg.norm(f_c)
+    u = f_c / norm
+    P_R = R_W_S[:2, :]
+    e = P_R @ u
+    du_df = (np.eye(3) - np.outer(u, u)) / norm
+    H_R = -P_R @ np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    H_r = -P_R @ du_df @ A_S
+    H_k = -(P_R @ du_df @ a_known_S).reshape(2, 1)
+    return e, H_R, H_r, H_k

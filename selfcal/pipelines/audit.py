@@ -17,7 +17,7 @@ from selfcal.models import imu
 
 log = logging.getLogger(__name__)
 
-SYSTEMS = ("imu", "imu-pair")
+SYSTEMS = ("imu", "imu-pair", "encoder", "scan", "ship", "tracker")
 
 
 @dataclass
@@ -78,10 +78,36 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
         if base not in (None, "rotation"):
             raise ValueError(f"unknown base model {base!r} for system imu-pair: the base is 'rotation'")
         audit_system = ImuPairAudit(recording.imu(names[0]), recording.imu(names[1]))
+    elif system == "encoder":
+        if base not in (None, "ml"):
+            raise ValueError(f"unknown base model {base!r} for system encoder: the base is 'ml'")
+        from selfcal.pipelines.encoder import encoder_audit_system
+        audit_system = encoder_audit_system(recording)
+    elif system == "scan":
+        if base not in (None, "error15"):
+            raise ValueError(f"unknown base model {base!r} for system scan: the base is 'error15'")
+        from selfcal.audit.scan_system import ScanAudit
+        from selfcal.pipelines.scan import read_scan, scan_problem
+        audit_system = ScanAudit(scan_problem(read_scan(recording)))
+    elif system == "ship":
+        if base not in (None, "attitude"):
+            raise ValueError(f"unknown base model {base!r} for system ship: the base is 'attitude'")
+        from selfcal.audit.ship_system import ShipAudit
+        from selfcal.pipelines.ship import ship_inputs
+        name = names[0] if names else "imu0"
+        audit_system = ShipAudit(ship_inputs(recording, name), sensor=name)
+    elif system == "tracker":
+        if base not in (None, "smoother"):
+            raise ValueError(f"unknown base model {base!r} for system tracker: the base is 'smoother'")
+        from selfcal.audit.tracker_system import TrackerAudit
+        from selfcal.pipelines.tracker import estimator_for_audit
+        audit_system = TrackerAudit(estimator_for_audit(recording))
     else:
         raise ValueError(f"unknown system {system!r}; known: {', '.join(SYSTEMS)}")
     result = run_audit(audit_system, progress=progress)
     run = AuditRun(result)
+    if system == "encoder":
+        run.diagnostics.update(audit_system.diagnostics)
     if isinstance(audit_system, ImuPairAudit):
         run.diagnostics["cross_correlation_lag_s"] = {
             "value": audit_system.initial_dt_s,

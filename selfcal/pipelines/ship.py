@@ -4,27 +4,54 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from selfcal.graphs.ship import ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
+from selfcal.graphs.ship import SPEED_RATE_WINDOW_S, ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
 from selfcal.io.recording import Recording, RecordingError
-from selfcal.models import imu
+from selfcal.models import imu, ship
 
 SPEED_SOURCES = (("speed0", "speed_log"), ("gps0", "speed"))  # preferred first: the log measures through water
 
 
 def ship_inputs(recording: Recording, imu_name: str = "imu0") -> ShipInputs:
-    """IMU samples of ``imu_name`` and the speed (speed log, else GPS speed) interpolated onto their times."""
-    data = recording.imu(imu_name)
-    speed = None
+    """IMU samples of ``imu_name`` and the speed (speed log, else GPS speed) with its rate on their times.
+
+    The speed is a smoothing spline through the log's samples, its smoothing chosen by generalised
+    cross-validation (scipy's ``make_smoothing_spline``): the log's own noise sets how much is smoothed, so the
+    surge acceleration (the spline's derivative) carries neither the noise nor a fixed window's lag.
+    """
+    from scipy.interpolate import make_smoothing_spline
+    data = uniformly_sampled(recording.imu(imu_name))
+    speed = speed_rate = None
     for sensor, column in SPEED_SOURCES:
         if sensor in recording.sensors and column in recording.sensors[sensor].values:
             s = recording.sensors[sensor]
-            speed = np.interp(data.t_ns.astype(float), s.t_ns.astype(float), s.values[column])
+            t_log = (s.t_ns - data.t_ns[0]) * 1e-9
+            t_imu = data.t_s - data.t_s[0]
+            if len(t_log) >= 5:
+                spline = make_smoothing_spline(t_log, s.values[column])
+                speed, speed_rate = spline(t_imu), spline.derivative()(t_imu)
+            else:
+                speed = np.interp(t_imu, t_log, s.values[column])
             break
     meta = data.meta
     return ShipInputs(data.t_s, data.gyro_rad_s, data.accel_m_s2, speed,
                       float(meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
                       float(meta.get("gyroscope_noise_density", 1e-4)),
-                      float(meta.get("gyroscope_random_walk", 1e-5)))
+                      float(meta.get("gyroscope_random_walk", 1e-5)), speed_rate)
+
+
+def uniformly_sampled(data):
+    """The IMU on a uniform grid at its mean rate when its stamps jitter (bursty USB/I2C loggers): the
+    derivatives and the patent's fixed-coefficient filters need one sample period.  Linear interpolation; a
+    uniformly sampled IMU is returned as it is."""
+    from dataclasses import replace
+    dt = np.diff(data.t_ns)
+    if len(dt) == 0 or (dt.max() - dt.min()) <= 0.1 * np.median(dt):
+        return data
+    t_ns = np.linspace(data.t_ns[0], data.t_ns[-1], len(data.t_ns)).round().astype(np.int64)
+    t, grid = data.t_ns.astype(float), t_ns.astype(float)
+    resample = lambda x: np.column_stack([np.interp(grid, t, c) for c in x.T])
+    return replace(data, t_ns=t_ns, gyro_rad_s=resample(data.gyro_rad_s), accel_m_s2=resample(data.accel_m_s2),
+                   channels={k: np.interp(grid, t, v) for k, v in data.channels.items()})
 
 
 def smooth_ship(recording: Recording, online: bool = False, remove_known_acceleration: bool = True,
@@ -42,3 +69,103 @@ def tum_text(estimate: ShipEstimate, t0_ns: int = 0) -> str:
     lines = [f"{t0_ns * 1e-9 + t:.9f} 0 0 0 {x:.12g} {y:.12g} {z:.12g} {w:.12g}"
              for t, (x, y, z, w) in zip(estimate.t_s, q)]
     return "# t x y z qx qy qz qw (attitude of the hull, body x forward y left z up)\n" + "\n".join(lines) + "\n"
+
+
+class OnlineShipTracker:
+    """``selfcal track --system ship``: samples in (IMU, speed log or GPS speed), attitudes out, one per keyframe.
+
+    ``push(sensor, t_ns, values)`` takes samples in timestamp order, with the recording's column names
+    (``w_RS_S_x`` ... ``a_RS_S_z`` for ``imu0``; ``speed_log`` for ``speed0``, ``speed`` for ``gps0``).  A keyframe
+    is solved once the IMU is ``angular_acceleration_window_s / 2`` past it (w_dot is a centred Savitzky-Golay
+    derivative): the output delay.  The speed rate is the trailing slope over the last 5 s of speed samples, so
+    the known acceleration needs no future data.  Outputs follow :mod:`selfcal.pipelines.track`: position is
+    zero (attitude only) and the covariance's position block is zero; its rotation block is the marginal of the
+    fixed-lag smoother.
+    """
+
+    def __init__(self, meta: dict[str, dict] | None = None, imu_name: str = "imu0",
+                 options: ShipGraphOptions = ShipGraphOptions()):
+        from selfcal.graphs.ship import OnlineShip, ShipGraph
+        meta = (meta or {}).get(imu_name, {})
+        self.imu_name, self.options = imu_name, options
+        self.graph = ShipGraph(options, float(meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
+                               float(meta.get("gyroscope_noise_density", 1e-4)),
+                               float(meta.get("gyroscope_random_walk", 1e-5)))
+        self.online = OnlineShip(self.graph)
+        self.t_s, self.gyro, self.accel = [], [], []  # IMU samples since the previous keyframe's window start
+        self.speed_t_s, self.speed = [], []
+        self.speed_sensor: str | None = None
+        self.next_keyframe_s: float | None = None
+        self.last_keyframe_index: int | None = None  # into the buffers
+
+    def push(self, sensor: str, t_ns: int, values: dict) -> list[dict]:
+        t_s = t_ns * 1e-9
+        for name, column in SPEED_SOURCES:
+            if sensor == name and column in values:
+                if self.speed_sensor is not None and self.speed_sensor != name and name != SPEED_SOURCES[0][0]:
+                    return []  # the speed log is preferred whenever it is there
+                if self.speed_sensor != name:
+                    self.speed_sensor, self.speed_t_s, self.speed = name, [], []
+                self.speed_t_s.append(t_s)
+                self.speed.append(float(values[column]))
+                while self.speed_t_s and self.speed_t_s[0] < t_s - 2 * SPEED_RATE_WINDOW_S:
+                    self.speed_t_s.pop(0)
+                    self.speed.pop(0)
+                return []
+        if sensor != self.imu_name:
+            return []
+        self.t_s.append(t_s)
+        self.gyro.append([values[c] for c in ("w_RS_S_x", "w_RS_S_y", "w_RS_S_z")])
+        self.accel.append([values[c] for c in ("a_RS_S_x", "a_RS_S_y", "a_RS_S_z")])
+        if self.next_keyframe_s is None:
+            self.next_keyframe_s = t_s
+        half = 0.5 * self.options.angular_acceleration_window_s
+        outputs = []
+        while t_s >= self.next_keyframe_s + half:
+            outputs.append(self._solve_keyframe(t_ns))
+            self.next_keyframe_s += self.options.keyframe_s
+        return outputs
+
+    def _solve_keyframe(self, t_ns_now: int) -> dict:
+        from selfcal.graphs.ship import Keyframe
+        t = np.asarray(self.t_s)
+        gyro, accel = np.asarray(self.gyro), np.asarray(self.accel)
+        i = int(np.searchsorted(t, self.next_keyframe_s))
+        i = min(i, len(t) - 1)
+        window = np.abs(t - t[i]) <= 0.5 * self.options.angular_acceleration_window_s
+        w_dot = _centred_slope(t[window], gyro[window], t[i])
+        A = imu.lever_arm_jacobian(gyro[i], w_dot)
+        has_speed = bool(self.speed) and self.options.remove_known_acceleration
+        if has_speed:
+            recent = np.asarray(self.speed_t_s) >= t[i] - SPEED_RATE_WINDOW_S
+            st, sv = np.asarray(self.speed_t_s)[recent], np.asarray(self.speed)[recent]
+            speed = float(np.interp(t[i], st, sv)) if len(st) else self.speed[-1]
+            rate = float(np.polyfit(st - st[-1], sv, 1)[0]) if len(st) >= 3 else 0.0
+            a_known = ship.known_acceleration_S(speed, rate, gyro[i, 2])
+        else:
+            a_known = np.zeros(3)
+        first = self.last_keyframe_index is None
+        span = slice(0, 0) if first else slice(self.last_keyframe_index, i)
+        frame = Keyframe(float(t[i]), gyro[span], np.diff(t)[span], accel[i], A, a_known, has_speed)
+        (roll, pitch, yaw), bias, cov = self.online.add(frame, covariance=True)
+        # drop what no later keyframe needs: samples before this keyframe's derivative window
+        keep = max(0, min(i, int(np.searchsorted(t, t[i] - 0.5 * self.options.angular_acceleration_window_s))))
+        del self.t_s[:keep], self.gyro[:keep], self.accel[:keep]
+        self.last_keyframe_index = i - keep
+        q = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
+        covariance = np.zeros((6, 6))
+        covariance[3:, 3:] = cov
+        return {"t_ns": int(round(t[i] * 1e9)), "position": [0.0, 0.0, 0.0], "quaternion": q.tolist(),
+                "covariance": covariance.tolist(), "faults": {},
+                "roll_rad": float(roll), "pitch_rad": float(pitch), "gyro_bias_rad_s": np.asarray(bias).tolist(),
+                "delay_s": t_ns_now * 1e-9 - float(t[i])}
+
+
+def _centred_slope(t_s: np.ndarray, x: np.ndarray, t0_s: float) -> np.ndarray:
+    """d x / dt at ``t0_s`` from a quadratic least-squares fit over the window (the Savitzky-Golay derivative)."""
+    if len(t_s) < 3:
+        return np.zeros(x.shape[1])
+    tau = t_s - t0_s
+    V = np.stack([np.ones_like(tau), tau, tau**2], axis=1)
+    coef, *_ = np.linalg.lstsq(V, x, rcond=None)
+    return coef[1]

@@ -1,0 +1,134 @@
+"""The vessel system (``--system ship``) for the audit.
+
+Base model (``attitude``): attitude and drifting gyro bias from the gyro and the accelerometer's total-force
+tilt, known accelerations (speed log, yaw rate) removed, the accelerometer taken at the centre of rotation
+(:mod:`selfcal.graphs.ship`).  Catalog:
+
+* ``lever_arm``: the accelerometer sits at ``r`` from the centre of rotation; the hull's angular acceleration
+  and rate add ``[w_dot]x r + [w]x^2 r`` to what it measures, which tilts the measured up with the waves,
+* ``speed_log_scale``: the speed log reads ``(1 + k)`` times the true speed, so the surge and centripetal
+  accelerations removed are off by ``k`` (a tilt during accelerations and turns).
+
+Residual family ``tilt`` (rad, 2 per keyframe: the world-frame horizontal part of the corrected force
+direction) with coordinates time, angular acceleration, surge acceleration and centripetal acceleration.  Folds
+split the voyage in two halves; the held-out half is solved with the constants of the other half held fixed.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+
+from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.graphs import imu_pair
+from selfcal.graphs.ship import (LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY, ShipGraph,
+                                 ShipGraphOptions, ShipInputs, keyframes_from_inputs, tilt_sigma_rad)
+from selfcal.graphs.solve import marginal_covariances, optimize
+from selfcal.models import ship
+
+MEANINGS = {"lever_arm": "the accelerometer is displaced from the centre of rotation: the hull's angular "
+                         "acceleration and rate tilt the force it measures",
+            "speed_log_scale": "the speed log reads (1 + k) times the true speed: surge and centripetal "
+                               "accelerations are removed wrongly"}
+KEYS = {"lever_arm": (LEVER_ARM_KEY, 3), "speed_log_scale": (SPEED_SCALE_KEY, 1)}
+AUDIT_KEYFRAME_S = 0.5  # coarser than smoothing: the audit refits the voyage a dozen times
+
+
+class ShipAudit:
+    name = "ship"
+    folds = 2
+    base_model = "attitude"
+
+    def __init__(self, inputs: ShipInputs, sensor: str = "imu0", keyframe_s: float = AUDIT_KEYFRAME_S):
+        self.inputs, self.sensor = inputs, sensor
+        self.base_effects = ()
+        self.options = ShipGraphOptions(keyframe_s=keyframe_s, estimate_lever_arm=False)
+        self.frames = keyframes_from_inputs(inputs, self.options)
+        t = np.array([f.t_s for f in self.frames])
+        half = 0.5 * (t[0] + t[-1])
+        self._halves = [np.flatnonzero(t < half), np.flatnonzero(t >= half)]
+        self.has_speed = inputs.speed_m_s is not None
+
+    def candidates(self) -> list[Candidate]:
+        out = [Candidate("lever_arm", self.sensor, MEANINGS["lever_arm"], "tilt", "angular acceleration")]
+        if self.has_speed:
+            out.append(Candidate("speed_log_scale", "speed0", MEANINGS["speed_log_scale"], "tilt",
+                                 "surge acceleration"))
+        return out
+
+    def _options(self, effects, fixed: gtsam.Values | None = None) -> ShipGraphOptions:
+        names = {c.effect for c in effects}
+        options = replace(self.options, estimate_lever_arm="lever_arm" in names and fixed is None,
+                          estimate_speed_scale="speed_log_scale" in names and fixed is None)
+        if fixed is not None:  # held-out half: the constants trained on the other half, held
+            if fixed.exists(LEVER_ARM_KEY):
+                options = replace(options, lever_arm_m=tuple(fixed.atVector(LEVER_ARM_KEY)))
+            if fixed.exists(SPEED_SCALE_KEY):
+                options = replace(options, speed_scale=float(fixed.atVector(SPEED_SCALE_KEY)[0]))
+        return options
+
+    def _frames(self, part):
+        return self.frames if part is None else [self.frames[i] for i in self._halves[part]]
+
+    def _build(self, effects, part, fixed=None):
+        """(graph, start values, the builder) of the voyage (part None) or one half."""
+        builder = ShipGraph(self._options(effects, fixed), self.inputs.gravity_m_s2, self.inputs.gyro_noise_density,
+                            self.inputs.gyro_random_walk)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for frame in self._frames(part):
+            g, v = builder.add(frame, values if builder.k >= 0 else None, propagate=False)
+            graph.push_back(g)
+            values.insert(v)
+        return graph, values, builder
+
+    def fit(self, effects, fold=None) -> Fit:
+        graph, values, builder = self._build(effects, fold)
+        values = optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE)
+        return Fit(tuple(effects), graph, values, self._families(values, builder, fold), {"fold": fold})
+
+    def extend(self, fit: Fit, candidate: Candidate):
+        graph, _, _ = self._build(fit.effects + (candidate,), fit.context["fold"])
+        values = gtsam.Values(fit.values)
+        key, dim = KEYS[candidate.effect]
+        values.insert(key, np.zeros(dim))
+        return graph, values, [(key, np.arange(dim))]
+
+    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+        other = 1 - fold
+        graph, values, builder = self._build(fit.effects, other, fixed=fit.values)
+        return self._families(optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE), builder, other)
+
+    def _families(self, values, builder: ShipGraph, part) -> list[ResidualFamily]:
+        options = builder.options
+        r = values.atVector(LEVER_ARM_KEY) if values.exists(LEVER_ARM_KEY) else np.asarray(options.lever_arm_m)
+        k = float(values.atVector(SPEED_SCALE_KEY)[0]) if values.exists(SPEED_SCALE_KEY) else options.speed_scale
+        frames = self._frames(part)
+        e = np.empty((len(frames), 2))
+        sigma = np.empty(len(frames))
+        for j, frame in enumerate(frames):
+            e[j] = ship.level_residual(values.atRot3(R_KEY(j)).matrix(), frame.accel_m_s2, frame.A_S, r,
+                                       frame.a_known_S, k)[0]
+            sigma[j] = tilt_sigma_rad(frame.accel_m_s2 - frame.a_known_S, self.inputs.gravity_m_s2, options)
+        coords = {"time_s": np.array([f.t_s for f in frames]),
+                  "angular acceleration": np.array([np.linalg.norm(f.A_S) for f in frames]),
+                  "surge acceleration": np.array([f.a_known_S[0] for f in frames]),
+                  "centripetal acceleration": np.array([f.a_known_S[1] for f in frames])}
+        return [ResidualFamily(self.sensor, "tilt", "rad", e / sigma[:, None], e, coords)]
+
+    def residual_correlation(self, fit: Fit) -> float:
+        """Variance inflation of the tilt residuals: waves make neighbouring keyframes' residuals alike."""
+        return imu_pair.correlation_inflation([fam.whitened for fam in fit.families], max_lag=40)
+
+    def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        """Value and 1-sigma; the covariance is scaled by the fit's variance factor and by the tilt residuals'
+        correlation in time (waves make neighbouring keyframes' residuals alike: fewer independent samples)."""
+        key, _ = KEYS[candidate.effect]
+        cov = marginal_covariances(fit.graph, fit.values, [key], candidate.effect)[key]
+        sigma = np.sqrt(np.diag(cov) * variance_factor(fit) * self.residual_correlation(fit))
+        value = fit.values.atVector(key)
+        if key == LEVER_ARM_KEY:
+            return {"r_m": value.tolist()}, {"r_m": sigma.tolist()}
+        # the graph's k corrects the log's acceleration (true = (1 + k) logged); the log reads 1 / (1 + k) - 1 high
+        correction = 1.0 + float(value[0])
+        return {"scale": 1.0 / correction - 1.0}, {"scale": float(sigma[0]) / correction**2}

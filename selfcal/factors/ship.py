@@ -1,0 +1,36 @@
+"""Ship tilt factor: the hull's up against the accelerometer's total force, corrected for the lever arm and the
+known hull acceleration (:func:`selfcal.models.ship.level_residual`).
+
+GTSAM's ``AttitudeFactorRot3`` measures the same direction but cannot take the accelerometer's lever arm or the
+speed log's scale as unknowns; this factor can, and without them it is the same measurement.
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from selfcal.models import ship
+
+
+def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: int | None = None,
+                speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0)) -> gtsam.CustomFactor:
+    """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
+    (without a lever-arm key, the known ``lever_arm_m`` is used)."""
+    f_S, A_S, a_known_S, known_r = (np.asarray(x, dtype=float) for x in (f_S, A_S, a_known_S, lever_arm_m))
+    keys = [rotation_key] + [k for k in (lever_arm_key, speed_scale_key) if k is not None]
+
+    def error(this, values, H):
+        r = values.atVector(lever_arm_key) if lever_arm_key is not None else known_r
+        k = values.atVector(speed_scale_key)[0] if speed_scale_key is not None else 0.0
+        e, H_R, H_r, H_k = ship.level_residual(values.atRot3(rotation_key).matrix(), f_S, A_S, r, a_known_S, k)
+        if H is not None:
+            H[0] = H_R
+            slot = 1
+            if lever_arm_key is not None:
+                H[slot] = H_r
+                slot += 1
+            if speed_scale_key is not None:
+                H[slot] = H_k
+        return e
+
+    return gtsam.CustomFactor(noise, keys, error)
