@@ -13,16 +13,16 @@ accelerometer-side variants) and null recordings with nothing outside the base m
 
 then the overall false-finding rate and the total time.  White noise only (no bias walk).  Usage:
 
-    .venv/bin/python benchmarks/audit_recall.py [--seeds 5] [--null-seeds 20] [--first-seed 1000] [--only TEXT]
-        [--json out.json]
+    .venv/bin/python benchmarks/audit_recall.py [--quick] [--seeds 5] [--null-seeds 20] [--first-seed 1000]
+        [--only TEXT] [--json out.json]
+
+``--quick``: one recording per type (defaults of --seeds / --null-seeds become 1 / 1).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -32,6 +32,8 @@ from selfcal.audit.imu_pair_system import ImuPairAudit
 from selfcal.audit.imu_system import ImuIntrinsicsAudit
 from selfcal.sim.imu_scenarios import AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
+
+import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
 
 WHITE = ImuNoise(accelerometer_random_walk=0.0, gyroscope_random_walk=0.0)
 RATE_HZ = 100.0
@@ -267,12 +269,14 @@ def _fmt(x, spec):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=5, help="recordings per hidden-effect type")
-    parser.add_argument("--null-seeds", type=int, default=20, help="recordings per null type")
+    parser.add_argument("--seeds", type=int, default=None, help="recordings per hidden-effect type (default 5)")
+    parser.add_argument("--null-seeds", type=int, default=None, help="recordings per null type (default 20)")
     parser.add_argument("--first-seed", type=int, default=1000)
     parser.add_argument("--only", help="run only the types whose name contains this text (e.g. 'pair')")
-    parser.add_argument("--json", help="also write the figures and every recording's findings as JSON")
+    _schema.add_arguments(parser, "audit_recall")
     args = parser.parse_args()
+    args.seeds = args.seeds or (1 if args.quick else 5)
+    args.null_seeds = args.null_seeds or (1 if args.quick else 20)
     start = time.perf_counter()
     rows = []
     plan = ([(make, args.seeds) for make in EFFECT_TYPES] + [(make, args.null_seeds) for make in NULL_TYPES])
@@ -305,12 +309,30 @@ def main() -> None:
                "total_seconds": total_s}
     print(f"\noverall: {len(rows)} recordings, recall {overall['recall']:.2f}, false findings per recording "
           f"{false_all:.3f} (null recordings only: {false_null:.3f}), total {total_s:.0f} s")
-    if args.json:
-        path = Path(args.json)
-        tmp = path.with_name(path.name + ".tmp")  # atomic: a failed run leaves no half file
-        tmp.write_text(json.dumps({"settings": vars(args), "overall": overall, "per_type": table,
-                                   "recordings": rows}, indent=1))
-        tmp.replace(path)
+    _schema.write(args.json, "audit_recall", "audit", args.quick, total_s, schema_rows(overall, table),
+                  {"settings": vars(args), "overall": overall, "per_type": table, "recordings": rows})
+    print(f"results: {args.json}")
+
+
+def schema_rows(overall: dict, table: dict) -> list[dict]:
+    """Recall, false findings and sigma honesty as schema rows (the audit has no patent baseline)."""
+    def pooled(key):
+        values = [(s[key], s["recordings"]) for s in table.values() if s[key] is not None]
+        return sum(v * n for v, n in values) / sum(n for _, n in values) if values else None
+
+    return [
+        _schema.row("recall of planted effects", "fraction", overall["recall"], better="higher",
+                    note=f"{overall['recordings']} generated recordings; no baseline"),
+        _schema.row("false findings per null recording", "count", overall["false_findings_per_null_recording"],
+                    note="no baseline"),
+        _schema.row("false findings per recording", "count", overall["false_findings_per_recording"],
+                    note="no baseline"),
+        _schema.row("coverage within 3 sigma (finding)", "fraction", pooled("coverage_finding"), better="higher",
+                    note="0.997 when the reported sigmas are honest; no baseline"),
+        _schema.row("RMS of error/sigma (finding)", "-", pooled("z_rms_finding"),
+                    note="1 when the reported sigmas are honest; no baseline"),
+        _schema.row("time per recording", "s", overall["total_seconds"] / max(overall["recordings"], 1),
+                    note="no baseline")]
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ Prints, per scenario, RMS rotation error of both methods over N seeded noise rea
 time per calibration and its ratio, the Cramér–Rao efficiency of the graph (RMS error / bound) and the mean
 NEES of its reported covariance (3 when honest); then the real-data figures.  Usage:
 
-    .venv/bin/python benchmarks/imu_pair_vs_patent.py [--runs 200] [--json out.json]
+    .venv/bin/python benchmarks/imu_pair_vs_patent.py [--quick] [--runs 200] [--json out.json]
 """
 from __future__ import annotations
 
@@ -21,6 +21,8 @@ from selfcal.pipelines.imu_calibration import calibrate_imu, calibrate_imu_pair
 from selfcal.pipelines.monte_carlo import imu_pair_rotation_study, pair_scenario
 from selfcal.sim.imu_scenarios import ImuNoise, ImuPairScenario, random_intrinsics
 from selfcal.sim.trajectories import MultiPositionTrajectory
+
+import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,17 +61,31 @@ def real_data() -> dict:
     return out
 
 
+def study(args, scenario):
+    """The seeded Monte Carlo study, in this process or on dask (selfcal.pipelines.fleet.run_study)."""
+    if not args.workers:
+        return imu_pair_rotation_study(args.runs, scenario)
+    from selfcal.pipelines.fleet import run_study
+    return run_study("imu-pair-rotation", args.runs, first_seed=1000, workers=args.workers, scenario=scenario)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=200)
-    parser.add_argument("--json", help="also write the figures as JSON")
+    parser.add_argument("--runs", type=int, default=None, help="noise realisations per scenario (default 200; "
+                                                                    "30 with --quick)")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="run the seeded runs on a local dask cluster of this many workers (same estimates, "
+                             "bit for bit; default 0: in this process)")
+    _schema.add_arguments(parser, "imu_pair_vs_patent")
     args = parser.parse_args()
+    args.runs = args.runs or (30 if args.quick else 200)
+    started = time.perf_counter()
     results = {}
     scenarios = (("ideal sensors, 8 poses", pair_scenario()),
                  ("sensor biases, 8 poses spread over the sphere", biased_pair_scenario(8)),
                  ("sensor biases, 3 poses (the patent's minimum)", biased_pair_scenario(3)))
     for name, scenario in scenarios:
-        summary = imu_pair_rotation_study(args.runs, scenario).summary()
+        summary = study(args, scenario).summary()
         results[name] = summary
         print(f"\n== {name} + moves between them, 100 Hz, {summary['runs']} runs")
         print(f"  RMS rotation error  graph {summary['rms_rotation_error_graph_deg']:.5f} deg   "
@@ -83,8 +99,38 @@ def main() -> None:
     results["real data"] = real_data()
     print("\n== real data")
     print(json.dumps(results["real data"], indent=1))
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
+    _schema.write(args.json, "imu_pair_vs_patent", "imu-pair", args.quick, time.perf_counter() - started,
+                  schema_rows(results), {"runs": args.runs, "scenarios": results})
+    print(f"results: {args.json}")
+
+
+def schema_rows(results: dict) -> list[dict]:
+    """The printed figures as schema rows: graph vs patent 002 per scenario, then the real data."""
+    rows = []
+    for name, s in results.items():
+        if name == "real data":
+            continue
+        rows += [
+            _schema.row(f"rotation RMSE, {name}", "deg", s["rms_rotation_error_graph_deg"],
+                        s["rms_rotation_error_patent_deg"]),
+            _schema.row(f"time per calibration, {name}", "s", s["seconds_per_run_graph"],
+                        s["seconds_per_run_patent"]),
+            _schema.row(f"efficiency RMS/CRB, {name}", "x", s["efficiency_ratio"],
+                        note="graph RMS rotation error / Cramér–Rao bound; 1 is efficient"),
+            _schema.row(f"mean NEES, {name}", "-", s["mean_nees"],
+                        note="graph's reported covariance; 3 when honest")]
+    real = results["real data"]
+    counts = np.asarray(real["xsens_intrinsics"]["accel_counts_per_unit"], dtype=float)
+    sheet = np.asarray(real["xsens_intrinsics"]["datasheet_counts_per_unit"], dtype=float)
+    rows += [
+        _schema.row("Xsens accel sensitivity, max |estimate - factory| / factory", "%",
+                    100 * float(np.max(np.abs(counts - sheet) / sheet)), note="real data; no baseline"),
+        _schema.row("Xsens static gravity residual", "m s^-2",
+                    real["xsens_intrinsics"]["static_gravity_residual_m_s2"], note="real data; no baseline"),
+        _schema.row("ANSFL horizontal flight, rotation loop closure R01 R12 R20", "deg",
+                    real["ansfl_horizontal_pairs"]["loop_closure_deg"],
+                    note="real data; patent not applicable (no static poses in flight)")]
+    return rows
 
 
 if __name__ == "__main__":
