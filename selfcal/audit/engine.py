@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 from scipy import stats
 
-from selfcal.graphs.solve import optimize
+from selfcal.graphs.solve import dense_jacobian, optimize
 
 log = logging.getLogger(__name__)
 
@@ -140,15 +140,7 @@ def score_test(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     RSS drop of the least-squares step with all columns against the step without the new ones, over the
     residual variance of the extended fit.
     """
-    ordering = gtsam.Ordering()
-    offsets, column = {}, 0
-    tangent = values.zeroVectors()
-    for k in values.keys():
-        ordering.push_back(k)
-        offsets[k] = column
-        column += tangent.at(k).size
-    A, b = graph.linearize(values).jacobian(ordering)
-    A, b = np.array(A, order="C"), np.array(b).ravel()  # own, contiguous copies: LAPACK on GTSAM's view is ~100x slower
+    A, b, offsets = dense_jacobian(graph, values)
     new = np.concatenate([offsets[k] + np.asarray(idx, dtype=int) for k, idx in new_columns])
     keep = np.setdiff1d(np.arange(A.shape[1]), new)
     rss_old = _lstsq_rss(A[:, keep], b)

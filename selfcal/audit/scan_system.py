@@ -34,7 +34,7 @@ import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.graphs import scan as gs
-from selfcal.graphs.solve import optimize
+from selfcal.graphs.solve import dense_marginals, optimize
 from selfcal.models import scan as ms
 from selfcal.models.sphere import SphereNotFoundError, fit_sphere
 
@@ -142,7 +142,7 @@ class ScanAudit:
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """Value and 1-sigma; the covariance scaled by the a-posteriori variance factor when it exceeds 1."""
         key = gs.EXT_KEYS[candidate.effect]
-        cov = gs.dense_marginals(fit.graph, fit.values, [key], candidate.effect)[key]
+        cov = dense_marginals(fit.graph, fit.values, [key], candidate.effect)[key]
         s = gs.EXTENSION_SCALE[candidate.effect] * np.sqrt(max(1.0, variance_factor(fit)))
         value = fit.values.atVector(key) * gs.EXTENSION_SCALE[candidate.effect]
         sigma = np.sqrt(np.diag(cov)) * s

@@ -29,9 +29,15 @@ def robust(sigmas, huber_k: float | None):
 
 
 def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int = 100,
-             relative_tolerance: float = 1e-10) -> gtsam.Values:
-    """Levenberg–Marquardt until the error's relative decrease falls below ``relative_tolerance``."""
+             relative_tolerance: float = 1e-10, linear_solver: str | None = None) -> gtsam.Values:
+    """Levenberg–Marquardt until the error's relative decrease falls below ``relative_tolerance``.
+
+    ``linear_solver``: GTSAM's linear solver type (e.g. ``"MULTIFRONTAL_QR"`` for badly scaled systems where
+    Cholesky meets an indeterminate pivot); default GTSAM's (multifrontal Cholesky).
+    """
     params = gtsam.LevenbergMarquardtParams()
+    if linear_solver is not None:
+        params.setLinearSolverType(linear_solver)
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_tolerance)
     params.setAbsoluteErrorTol(1e-12)
@@ -43,29 +49,41 @@ def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_itera
 
 
 def marginal_covariances(graph, values, keys, what: str) -> dict[int, np.ndarray]:
-    """Marginal covariance of each key; a singular system becomes a DegenerateDataError naming ``what``."""
+    """Marginal covariance of each key; a singular system becomes a DegenerateDataError naming ``what``.
+
+    GTSAM's Cholesky also gives up on systems that are only badly scaled (a weakly observed variable next to
+    thousands of tight factors, information ratios ~1e12): those are retried with :func:`dense_marginals`.
+    """
     try:
         marginals = gtsam.Marginals(graph, values)
         return {k: marginals.marginalCovariance(k) for k in keys}
-    except RuntimeError as err:
-        reason = " ".join(str(err).split()[:8])
-    # GTSAM's Cholesky gives up on systems that are only badly scaled (a weak prior next to thousands of tight
-    # factors); the dense information matrix, inverted by eigen-decomposition, tells those from singular ones
+    except RuntimeError:
+        return dense_marginals(graph, values, keys, what)
+
+
+def dense_jacobian(graph, values) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
+    """Whitened Jacobian ``A``, right-hand side ``b`` and each key's first column, linearised at ``values``."""
     ordering = gtsam.Ordering()
     offsets, column = {}, 0
+    tangent = values.zeroVectors()
     for k in values.keys():
         ordering.push_back(k)
         offsets[k] = column
-        column += values.zeroVectors().at(k).size
-    A, _ = graph.linearize(values).jacobian(ordering)
-    information = np.array(A.T @ A)
-    scale = 1.0 / np.sqrt(np.maximum(np.diag(information), 1e-300))  # Jacobi scaling: units do not make it singular
-    eigenvalues, vectors = np.linalg.eigh(information * np.outer(scale, scale))
-    if eigenvalues[0] <= 1e-12 * eigenvalues[-1]:
-        raise DegenerateDataError(f"the data do not determine {what} (singular information matrix: {reason})")
-    covariance = np.outer(scale, scale) * ((vectors / eigenvalues) @ vectors.T)
-    out = {}
-    for k in keys:
-        idx = offsets[k] + np.arange(values.zeroVectors().at(k).size)
-        out[k] = covariance[np.ix_(idx, idx)]
-    return out
+        column += tangent.at(k).size
+    A, b = graph.linearize(values).jacobian(ordering)
+    # own, contiguous copies: LAPACK on GTSAM's view is ~100x slower
+    return np.array(A, order="C"), np.array(b).ravel(), offsets
+
+
+def dense_marginals(graph, values, keys, what: str) -> dict[int, np.ndarray]:
+    """Marginal covariances from the dense, column-equilibrated information matrix (eigen-decomposition):
+    units and weak priors do not make it singular, only a direction the data and priors leave free does."""
+    A, _, offsets = dense_jacobian(graph, values)
+    scale = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    eigenvalues, vectors = np.linalg.eigh((A / scale).T @ (A / scale))
+    if eigenvalues.min() <= 1e-13 * eigenvalues.max():
+        raise DegenerateDataError(f"the data do not determine {what} (singular information matrix)")
+    covariance = (vectors / eigenvalues) @ vectors.T / np.outer(scale, scale)
+    tangent = values.zeroVectors()
+    return {k: covariance[offsets[k]:offsets[k] + tangent.at(k).size, offsets[k]:offsets[k] + tangent.at(k).size]
+            for k in keys}
