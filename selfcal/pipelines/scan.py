@@ -60,11 +60,30 @@ class ScanData:
     jitter_sigmas: np.ndarray
 
     def world_points(self, R, r) -> tuple[np.ndarray, np.ndarray]:
-        """All points in the world for clock poses R (M, 3, 3), r (M, 3); and the clock of each point."""
-        pts = [ms.world_points(R[m], r[m], self.imu_R_vision, self.imu_t_vision, p)
-               for m, p in enumerate(self.points_V)]
-        clock = np.repeat(np.arange(len(pts)), [len(p) for p in pts])
-        return (np.concatenate(pts) if pts else np.zeros((0, 3))), clock
+        """All points in the world for clock poses R (M, 3, 3), r (M, 3); and the clock of each point.
+
+        ``p_W = R (R_IV p_V + t_IV) + r = (R R_IV) p_V + (R t_IV + r)``: one 3x3 product per clock, written
+        into one preallocated array (10 M points: a list of per-clock results and a concatenation cost twice
+        the memory and seconds).  Each output column is three multiply-adds over the clock's points: 3-4x faster
+        than ``@`` or einsum per clock (measured: 0.3 s against 1.1 s for 10 M points), and no threaded BLAS,
+        which stalls on (N, 3) x (3, 3) products on a shared machine.
+        """
+        R, r = np.asarray(R, float), np.asarray(r, float)
+        counts = np.array([len(p) for p in self.points_V], dtype=np.int64)
+        offsets = np.r_[0, np.cumsum(counts)]
+        out = np.empty((int(offsets[-1]), 3))
+        A = np.einsum("mij,jk->mik", R, self.imu_R_vision)  # world_R_vision per clock
+        b = np.einsum("mij,j->mi", R, self.imu_t_vision) + r
+        for m, p in enumerate(self.points_V):
+            seg, a = out[offsets[m]:offsets[m + 1]], A[m]
+            for k in range(3):
+                col = seg[:, k]
+                np.multiply(p[:, 0], a[k, 0], out=col)
+                col += p[:, 1] * a[k, 1]
+                col += p[:, 2] * a[k, 2]
+                col += b[m, k]
+        clock = np.repeat(np.arange(len(counts)), counts)
+        return out, clock
 
 
 def read_scan(recording: Recording, scan_name: str = "scan0", ins_name: str = "ins0") -> ScanData:
@@ -134,23 +153,33 @@ def detect_set_b(data: ScanData, R, r, options: DetectionOptions = DetectionOpti
     P, clock = data.world_points(R, r)
     if len(P) == 0:
         raise DegenerateDataError("the scan holds no points")
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
-    down, _, traces = cloud.voxel_down_sample_and_trace(options.voxel_m, cloud.get_min_bound(), cloud.get_max_bound())
-    labels = np.asarray(down.cluster_dbscan(options.dbscan_eps_m, options.dbscan_min_points))
-    tree = o3d.geometry.KDTreeFlann(cloud)
     R_s = data.radius_m
+    # candidates on the voxel-downsampled cloud; the full-resolution points near them are fitted below
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    down = cloud.voxel_down_sample(options.voxel_m)
+    labels = np.asarray(down.cluster_dbscan(options.dbscan_eps_m, options.dbscan_min_points))
     D = np.asarray(down.points)
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(labels.max() + 2 if len(labels) else 1))
+    seeds = []
+    for label in range(len(starts) - 1):
+        q = D[order[starts[label]:starts[label + 1]]]
+        extent = q.max(axis=0) - q.min(axis=0)
+        if extent.max() > 4 * R_s or extent.max() < 0.5 * R_s:
+            continue  # a wall, or a speck
+        seeds.append(q.mean(axis=0))
+    # a KD-tree over only the full-resolution points in grid cells near a candidate: the same neighbourhoods as a
+    # tree over all points, without building one over 10 M points
+    near, tree = _points_near(P, np.array(seeds).reshape(-1, 3), 2.5 * R_s, cloud.get_min_bound(),
+                              cloud.get_max_bound())
+    del cloud
     taken = np.zeros(len(P), dtype=bool)
     rng = np.random.default_rng(seed)
     centers, members = [], []
     sigma_guess = 0.002
-    for label in range(labels.max() + 1 if len(labels) else 0):
-        q = D[labels == label]
-        extent = q.max(axis=0) - q.min(axis=0)
-        if extent.max() > 4 * R_s or extent.max() < 0.5 * R_s:
-            continue  # a wall, or a speck
-        _, idx, _ = tree.search_radius_vector_3d(q.mean(axis=0), 2.5 * R_s)
-        idx = np.asarray(idx)
+    for c in seeds:
+        _, idx, _ = tree.search_radius_vector_3d(c, 2.5 * R_s)
+        idx = near[np.sort(np.asarray(idx, dtype=np.int64))]
         idx = idx[~taken[idx]]
         try:
             fit, inl = ransac_sphere(P[idx], radius_m=R_s, threshold_m=max(0.003, options.threshold_sigmas * sigma_guess),
@@ -196,6 +225,36 @@ def detect_set_b(data: ScanData, R, r, options: DetectionOptions = DetectionOpti
     return observations, centers
 
 
+def _points_near(points: np.ndarray, seeds: np.ndarray, radius_m: float, min_bound, max_bound):
+    """Indices of the points in the grid cells (size ``radius_m``) touching balls of ``radius_m`` about the seeds,
+    and an open3d KD-tree over those points (its indices refer to the returned index array).
+
+    ``min_bound``, ``max_bound``: the points' bounding box (open3d's, cheaper than numpy's strided reductions).
+    """
+    if len(seeds) == 0:
+        return np.zeros(0, dtype=np.int64), o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud())
+    origin = np.asarray(min_bound, float)
+    inv = 1.0 / radius_m
+    dims = ((np.asarray(max_bound, float) - origin) * inv).astype(np.int64) + 3  # a margin for the seeds' +-1
+    key = np.zeros(len(points), dtype=np.int64)
+    for k in range(3):  # one coordinate at a time: no (N, 3) temporaries
+        key *= dims[k]
+        key += ((points[:, k] - origin[k]) * inv).astype(np.int64)  # >= 0: truncation is floor
+    seed_cell = ((seeds - origin) * inv).astype(np.int64)  # the points' rounding
+    offsets = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
+    around = (seed_cell[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    wanted = np.unique((around[:, 0] * dims[1] + around[:, 1]) * dims[2] + around[:, 2])
+    if np.prod(dims) <= 64_000_000:  # a lookup table over the grid (bytes): one gather per point
+        table = np.zeros(int(np.prod(dims)), dtype=bool)
+        table[wanted] = True
+        near = np.flatnonzero(table[key])
+    else:
+        pos = np.minimum(np.searchsorted(wanted, key), len(wanted) - 1)
+        near = np.flatnonzero(wanted[pos] == key)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[near]))
+    return near, o3d.geometry.KDTreeFlann(cloud)
+
+
 def scan_problem(data: ScanData, detection: DetectionOptions = DetectionOptions()) -> gs.ScanProblem:
     """Set B detected in the inertial-only scan, with the INS error sensitivity: the graph's input."""
     sens = ms.error_sensitivity(data.ins_t_s, data.ins_R, data.ins_accel, data.ins_gyro)
@@ -224,6 +283,7 @@ class ScanEstimate:
     extensions: dict = field(default_factory=dict)
     problem: gs.ScanProblem | None = None
     solution: gs.ScanSolution | None = None
+    stages_s: dict = field(default_factory=dict)  # stage -> (wall s, CPU s of the process)
 
     def summary(self) -> str:
         s = [f"{len(self.points_W)} points, {len(self.centers)} spheres ({self.n_b_points} points on "
@@ -277,18 +337,30 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
                 scan_name: str = "scan0", ins_name: str = "ins0", iterations: int | None = None) -> ScanEstimate:
     """Correct a mobile scan: sphere constraints -> INS error terms -> every clock's pose -> set A."""
     start = time.perf_counter()
+    stages = {}
+    clock_ = [time.perf_counter(), time.process_time()]
+
+    def lap(name):
+        now = [time.perf_counter(), time.process_time()]
+        stages[name] = (now[0] - clock_[0], now[1] - clock_[1])
+        clock_[:] = now
+
     data = read_scan(recording, scan_name, ins_name)
     if sum(len(p) for p in data.points_V) == 0:
         raise DegenerateDataError(f"{recording.path}: the scan holds no points")
+    lap("read points")
     problem = scan_problem(data)
+    lap("sphere detection (set B)")
     problem, solution, theta = solve_scan(data, problem, model, online, iterations)
+    lap("factor graph")
     R, r = gs.corrected_clock_poses(problem, solution)
     P, clock = data.world_points(R, r)
     res = np.concatenate(gs.sphere_residuals(problem, solution.values, model))
+    lap("correction of all points")
     return ScanEstimate(P, clock, theta, np.sqrt(np.diag(solution.theta_cov)), solution.centers,
                         solution.centers_cov, float(np.sqrt(np.mean(res**2))),
                         sum(len(o.vision_p) for o in problem.observations), len(problem.b_clocks()),
-                        time.perf_counter() - start, online, solution.extensions, problem, solution)
+                        time.perf_counter() - start, online, solution.extensions, problem, solution, stages)
 
 
 def inertial_only_points(recording: Recording) -> np.ndarray:
