@@ -568,7 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = verbs.add_parser("fleet", help="run one task per recording (a production line, a test campaign) on dask")
     p.add_argument("source", help="folder of recordings, or a manifest (.yaml/.csv; see docs/fleet.md)")
     p.add_argument("--task", required=True,
-                   help="calibrate-imu, calibrate-imu-pair, audit, or any task a system registered")
+                   help="calibrate-imu, calibrate-imu-pair, calibrate-encoder, audit, or any task a system registered")
     p.add_argument("--out", required=True, help="result table TABLE.csv or TABLE.parquet (both are written)")
     p.add_argument("--report", help="short report: .html (plots embedded) or .md")
     p.add_argument("--scheduler", help="address of a running dask scheduler (default: a local cluster)")

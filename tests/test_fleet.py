@@ -188,3 +188,21 @@ def test_monte_carlo_is_bit_identical_on_one_or_two_workers(client):
     # different seeds give different realisations (the test above could not pass by ignoring the seed)
     other = fleet.run_study("imu-pair-rotation", 2, first_seed + 100, client=client, scenario=scenario)
     assert not np.array_equal(other.errors_graph, direct.errors_graph[:2])
+
+
+def test_encoder_production_line(client, tmp_path):
+    """claim 29 of patent 000: a line of encoders, each self-calibrated; one column per calibrated number and
+    the graduation error each disk really has (the simulation's truth) recovered in the table."""
+    from selfcal.io.recording import read_truth
+    from selfcal.pipelines.encoder import simulate_encoder
+    small = dict(l=6, n_diodes=128, n_positions=40, cells_per_image=20.0)
+    for seed in (1, 2):
+        simulate_encoder(tmp_path / "line" / f"disk{seed}", seed=seed, **small)
+    table = fleet.run_fleet(tmp_path / "line", "calibrate-encoder", client=client).table
+    assert list(table["ok"]) == [True, True]
+    assert {"graduation_rms_rad", "edge_sigma_median_rad", "arrays_array0_geometry_p"} <= set(table.columns)
+    for _, row in table.iterrows():
+        truth = read_truth(row["recording"])
+        true_rms = float(np.sqrt(np.mean(np.square(truth["graduation_rad"]))))
+        # each edge is estimated to ~edge_sigma: the RMS over the disk can differ from the truth's by a few sigma
+        assert abs(row["graduation_rms_rad"] - true_rms) < 5 * row["edge_sigma_median_rad"]

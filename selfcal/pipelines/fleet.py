@@ -263,6 +263,21 @@ def audit_task(recording_path, options: dict) -> dict:
     return out
 
 
+def calibrate_encoder_task(recording_path, options: dict) -> dict:
+    """``selfcal calibrate encoder`` as columns: per array the geometry, aperture and dark level with their
+    sigmas and the residual; the graduation error's RMS and largest value, the median edge sigma, frames."""
+    from selfcal.pipelines.encoder import calibrate_encoder
+    cal = calibrate_encoder(read_recording(recording_path), use_reference=options.get("reference", True))
+    d = cal.to_dict()
+    graduation = np.asarray(d["graduation_error_rad"])
+    sigma = np.array([np.nan if s is None else s for s in d["edges_sigma_rad"]], dtype=float)
+    return {"edges": d["code"]["n_edges"], "graduation_rms_rad": float(np.sqrt(np.mean(graduation**2))),
+            "graduation_max_rad": float(np.max(np.abs(graduation))),
+            "edge_sigma_median_rad": float(np.nanmedian(sigma)),
+            "frames_used": d["frames"]["used"], "frames_flagged": len(d["frames"]["flagged"]),
+            "seconds": d["seconds"], **flat_columns({"arrays": d["arrays"]})}
+
+
 def _column(label: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in label).strip("_")
 
@@ -272,6 +287,8 @@ register_task("calibrate-imu", calibrate_imu_task, ("imu", "gravity"),
 register_task("calibrate-imu-pair", calibrate_imu_pair_task,
               ("imu0", "imu1", "lever_arm", "time_offset", "gains", "lowpass_hz"),
               "rotation (time offset, lever arm) between two IMUs")
+register_task("calibrate-encoder", calibrate_encoder_task, ("reference",),
+              "encoder self-calibration from the diode array's own images")
 register_task("audit", audit_task, ("system", "base", "imu", "imu1"),
               "residual audit: findings, effect names, residual RMS before/after", required=("system",))
 
