@@ -13,6 +13,11 @@ prism velocity (tracker)   :func:`prism_velocity_factor` (custom)           ``v 
 beam spot (camera)         :func:`beam_bearing_factor` (custom)             bearing error (rad, 2)
 =========================  ===============================================  ==========================
 
+The audit (:mod:`selfcal.audit.tracker_system`) rebuilds the tracker and inclinometer factors with calibration
+effects as variables: :func:`calibrated_prism_factor` (lever-arm correction, clock offset; one block of samples
+per keyframe), :func:`calibrated_prism_velocity_factor` (clock offset), :func:`calibrated_inclinometer_factor`
+(bias, scale, acceleration sensitivity, in roll/pitch).
+
 The custom factors return the unwhitened error, fill right-perturbation Jacobians only when ``H`` is given,
 and call :mod:`selfcal.models.tracker` for the physics.
 """
@@ -21,6 +26,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from selfcal.models import so3
 from selfcal.models import tracker as mt
 
 UP_W = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
@@ -76,3 +82,100 @@ def beam_bearing_factor(noise, pose_key: int, bearing_C, r_C_B, R_B_C, tracker_W
         return e
 
     return gtsam.CustomFactor(noise, [pose_key], error)
+
+
+def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: int | None = None,
+                            offset_key: int | None = None, lever_fixed=np.zeros(3), offset_fixed: float = 0.0,
+                            start_velocity_key: int | None = None, lead_s=None, v_start=None) -> gtsam.CustomFactor:
+    """Tracker positions with the audit's calibration effects: ``e_i = p + R (r + dr) - dt v_i - z_i`` (m, world).
+
+    ``p_P_W`` (n, 3): the n samples of one keyframe, each moved to the keyframe's time (one factor per block);
+    ``v_W`` (n, 3) the target's velocity at each sample.  ``dr`` (m, body; variable ``lever_key`` or the
+    constant ``lever_fixed``) corrects the nominal prism lever arm ``r_P_B``; ``dt`` (s; variable ``offset_key``
+    or ``offset_fixed``) is the tracker's clock offset (``t_tracker = t_imu + dt``: a sample shows the prism
+    ``dt`` earlier).  With ``start_velocity_key`` the move to the keyframe is redone with that velocity variable
+    (the previous keyframe's, where the IMU propagation started) instead of ``v_start`` (the one used):
+    ``z_i + lead_i (V - v_start)``, ``lead_i`` (s) = keyframe time - sample time.  Keys: the pose, then the lever
+    arm, the offset, the start velocity (those given).  Error (3 n,).
+    """
+    z, r0, v = np.atleast_2d(p_P_W).astype(float), np.asarray(r_P_B, dtype=float), np.atleast_2d(v_W).astype(float)
+    n = len(z)
+    keys = [pose_key] + [key for key in (lever_key, offset_key, start_velocity_key) if key is not None]
+    lead = np.zeros(n) if lead_s is None else np.asarray(lead_s, dtype=float)
+    v0 = np.zeros(3) if v_start is None else np.asarray(v_start, dtype=float)
+
+    def error(this, values, H):
+        pose = values.atPose3(pose_key)
+        R = pose.rotation().matrix()
+        dr = values.atVector(lever_key) if lever_key is not None else np.asarray(lever_fixed, dtype=float)
+        dt = float(values.atVector(offset_key)[0]) if offset_key is not None else float(offset_fixed)
+        r = r0 + dr
+        moved = z if start_velocity_key is None else z + np.outer(lead, values.atVector(start_velocity_key) - v0)
+        e = (mt.prism_position_delayed(R, pose.translation(), r, v, dt) - moved).ravel()
+        if H is not None:
+            H[0] = np.tile(np.hstack([-R @ so3.hat(r), R]), (n, 1))
+            i = 1
+            if lever_key is not None:
+                H[i] = np.tile(R, (n, 1))
+                i += 1
+            if offset_key is not None:
+                H[i] = -v.reshape(-1, 1)
+                i += 1
+            if start_velocity_key is not None:
+                H[i] = -np.kron(lead[:, None], np.eye(3))
+        return e
+
+    return gtsam.CustomFactor(noise, keys, error)
+
+
+def calibrated_prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_P_W, w_B, r_P_B, a_W,
+                                     offset_key: int | None = None, offset_fixed: float = 0.0) -> gtsam.CustomFactor:
+    """Tracker velocity with the audit's clock offset: ``e = v + R (w x r) - dt a - z`` (m/s, world).
+
+    A tracker stamping ``dt`` late reports the velocity of ``dt`` earlier, ``v - dt a`` (``a_W``: the target's
+    acceleration over the keyframe interval, from the IMU, known).  Keys: pose, velocity, then the offset.
+    """
+    z, w, r, a = (np.asarray(x, dtype=float) for x in (v_P_W, w_B, r_P_B, a_W))
+    keys = [pose_key, velocity_key] + ([offset_key] if offset_key is not None else [])
+
+    def error(this, values, H):
+        R = values.atPose3(pose_key).rotation().matrix()
+        dt = float(values.atVector(offset_key)[0]) if offset_key is not None else float(offset_fixed)
+        e = mt.prism_velocity_W(R, values.atVector(velocity_key), w, r) - dt * a - z
+        if H is not None:
+            H[0], H[1] = mt.prism_velocity_jacobians(R, w, r)
+            if offset_key is not None:
+                H[2] = -a[:, None]
+        return e
+
+    return gtsam.CustomFactor(noise, keys, error)
+
+
+def calibrated_inclinometer_factor(noise, pose_key: int, z_rad, disturbance_rad, effect_keys: dict,
+                                   fixed: dict) -> gtsam.CustomFactor:
+    """Inclinometer reading ``z = (roll, pitch)`` (rad) with the audit's calibration effects
+    (:func:`selfcal.models.tracker.inclinometer_reading`): ``e = pred - z``.
+
+    ``effect_keys`` maps 'bias' (2), 'scale' (1), 'accel_sensitivity' (1) to variable keys; an effect without a
+    key takes its constant from ``fixed`` (0 when absent).  Keys: the pose, then the effects in that order.
+    """
+    z, d = np.asarray(z_rad, dtype=float), np.asarray(disturbance_rad, dtype=float)
+    names = [name for name in ("bias", "scale", "accel_sensitivity") if effect_keys.get(name) is not None]
+    keys = [pose_key] + [effect_keys[name] for name in names]
+    const = {"bias": np.asarray(fixed.get("bias", np.zeros(2)), dtype=float),
+             "scale": float(fixed.get("scale", 0.0)), "accel_sensitivity": float(fixed.get("accel_sensitivity", 0.0))}
+
+    def error(this, values, H):
+        R = values.atPose3(pose_key).rotation().matrix()
+        p = dict(const)
+        for name in names:
+            v = values.atVector(effect_keys[name])
+            p[name] = v if name == "bias" else float(v[0])
+        pred, J = mt.inclinometer_reading(R, d, p["bias"], p["scale"], p["accel_sensitivity"], with_jacobian=True)
+        if H is not None:
+            H[0] = np.hstack([J["rotation"], np.zeros((2, 3))])
+            for i, name in enumerate(names, start=1):
+                H[i] = J[name]
+        return pred - z
+
+    return gtsam.CustomFactor(noise, keys, error)

@@ -1,4 +1,4 @@
-"""The laser-tracker target as a factor graph, online (iSAM2 / fixed-lag) and offline (batch LM), with fault gating.
+"""The laser-tracker target as a factor graph, online (iSAM2 / fixed-lag) and offline (batch), with fault gating.
 
 One engine, :class:`TrackerEstimator`, consumes samples in timestamp order.  IMU samples are preintegrated;
 every ``keyframe_s`` a keyframe ``(X_k, V_k, B_k)`` enters with a ``CombinedImuFactor`` and the factors of
@@ -23,12 +23,16 @@ Fault gating (every decision is returned with its statistic):
    :func:`wishart_lambda_max_quantile`).  On detection the sensor's factors of the window still inside the
    smoother are removed again (``factorsToRemove``) and its new factors are held out; it is readmitted when a
    full window of its (monitored, not added) residuals passes the same test.
-3. The inclinometer factor's sigma grows with the vibration the accelerometer itself shows (excess variance
-   of the keyframe interval's specific force over its white noise, when significant at 0.1 %).
+   Rejected inclinometer samples go to the detector too, winsorised onto the gate's boundary (unless the
+   accelerometer shows vibration starting), so a ramp the gate keeps catching is declared within seconds.
+3. Vibration is modelled, not alarmed: the inclinometer factor's covariance grows with the vibration the
+   accelerometer shows over a window centred on the sample (:meth:`TrackerEstimator._vibration_covariance`;
+   the sample enters provisionally at once and is re-decided when the window is complete) and with the
+   high-frequency energy of its own residuals (:meth:`TrackerEstimator._with_own_vibration`).
 
 Solvers: ``'isam2'`` (gtsam.ISAM2, the whole history), ``'fixed-lag'`` (gtsam.IncrementalFixedLagSmoother over
-``lag_s``: bounded memory over hours), and :func:`batch_smooth` (the same accepted factors, Levenberg-Marquardt
-over all keyframes).
+``lag_s``: bounded memory over hours), and :func:`batch_smooth` (the same accepted factors over all keyframes,
+Gauss-Newton from the online estimates, Levenberg-Marquardt if a step fails).
 """
 from __future__ import annotations
 
@@ -41,7 +45,6 @@ from functools import lru_cache
 import gtsam
 import numpy as np
 from scipy import stats
-from scipy.linalg import solve_triangular
 
 from selfcal.factors import tracker as ft
 from selfcal.graphs.solve import DegenerateDataError, optimize
@@ -52,13 +55,14 @@ from selfcal.models.tracker import wishart_lambda_max_quantile, wishart_lambda_m
 log = logging.getLogger(__name__)
 
 X, V, B = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B
+_UP_BASIS = ft.UP_W.basis()  # (3, 2): the inclinometer factor's error is expressed on this tangent basis
 SENSORS = ("tracker0", "incl0", "cam0")
 
 
 @lru_cache(maxsize=64)
-def _variance_ratio_999(dof: int) -> float:
-    """chi2(dof).ppf(0.999) / dof: a sample variance above ``white`` times this is significant at 0.1 %."""
-    return float(stats.chi2.ppf(0.999, dof) / dof)
+def _variance_ratio(dof: int, alpha: float) -> float:
+    """chi2(dof).ppf(1 - alpha) / dof: a sample variance above ``white`` times this is significant at ``alpha``."""
+    return float(stats.chi2.ppf(1.0 - alpha, dof) / dof)
 
 
 @dataclass
@@ -68,6 +72,7 @@ class SensorNoise:
     tracker_sigma_m: float = 0.5e-3
     tracker_velocity_sigma_m_s: float = 2e-3
     incl_sigma_rad: float = 8.7e-5
+    incl_average_s: float = 0.02  # the inclinometer's own averaging of the specific force before each sample
     cam_sigma_px: float = 0.2
     r_P_B: np.ndarray = field(default_factory=lambda: np.array([0.12, -0.05, 0.25]))
     r_C_B: np.ndarray = field(default_factory=lambda: np.array([0.10, 0.03, 0.20]))
@@ -96,8 +101,29 @@ class GatingOptions:
     window: int = 30  # eigen detector window n (inclinometer samples)
     stride_s: float = 1.0  # time between eigen tests of one sensor
     false_alarms_per_hour: float = 1.0  # stated rate, per sensor (union bound)
-    vibration_inflation: bool = True
+    vibration_inflation: bool = True  # inclinometer covariance grown by the vibration the accelerometer shows
+    vibration_window_s: float = 0.5  # accelerometer history the vibration is measured over
+    vibration_alpha: float = 0.01  # significance of the excess accelerometer energy before it inflates anything
+    # a rejected inclinometer sample is kept from the soft-fault detector when the accelerometer shows energy
+    # above its white noise at this loose level: a burst's onset (the first ~0.5 s, before the vibration is
+    # significant at vibration_alpha) rejects a few samples, which must not add up to a soft fault
+    vibration_hint_alpha: float = 0.2
+    diff_window: int = 10  # inclinometer residual differences whose median measures its own vibration
+    diff_ratio: float = 2.5  # their median over its null value before it inflates (P < 1 % without vibration)
     max_consecutive_rejects: int = 20  # then the sensor is readmitted (the state, not it, is judged wrong)
+    # a held-out inclinometer whose residuals keep their noise (not stuck) is readmitted after this long: a slow
+    # ramp the state followed (tilt and accelerometer bias are one combination for everything but the
+    # inclinometer) leaves the state off when the ramp ends, and the good sensor then disagrees with it for ever
+    max_holdout_s: float = 60.0
+    max_grace_s: float = 20.0  # longest ungated, unaccusable spell after such a readmission
+    # a slow inclinometer ramp can be followed by the state without residuals: the smoother tilts and lets the
+    # accelerometer bias absorb g x tilt, straining the bias's random walk instead.  The bias increments of the
+    # last ``bias_drift_window`` keyframes, normalised by the random walk, summed / sqrt(n) on the horizontal
+    # body axes: above ``bias_drift_z`` (fault-free runs with vibration: max ~4 over 600 s; a 0.01 deg/s ramp:
+    # 8-19) the inclinometer is declared faulty
+    bias_drift_window: int = 30
+    bias_drift_z: float = 6.0
+    bias_drift_settle_s: float = 30.0  # the bias converges first
     # the patent's state recursor for the inclinometer (off: with a MEMS gyro, 1.7e-4 rad/sqrt(s), the
     # gyro-only attitude over a 3 s window wanders ~3 inclinometer sigmas, its pseudo-innovations are strongly
     # correlated and the Wishart threshold does not hold: measured false alarms every few seconds)
@@ -130,11 +156,13 @@ class EigenDetector:
         self.threshold = wishart_lambda_max_quantile(m, self.n, round(self.alpha / 2, 12))
         self.lower = wishart_lambda_min_quantile(m, self.n, round(self.alpha / 2, 12))
         self.window: deque = deque(maxlen=self.n)
+        self.inflated: deque = deque(maxlen=self.n)  # was the sample's noise grown by measured vibration?
         self.count = 0
 
-    def push(self, nu: np.ndarray) -> float | None:
+    def push(self, nu: np.ndarray, inflated: bool = False) -> float | None:
         """Add one normalised residual; the statistic when a test is due (full window, every stride), else None."""
         self.window.append(np.asarray(nu, dtype=float))
+        self.inflated.append(bool(inflated))
         self.count += 1
         if len(self.window) < self.n or self.count % self.stride:
             return None
@@ -144,11 +172,20 @@ class EigenDetector:
         return float(eig[-1])
 
     def healthy(self, lam_max: float) -> bool:
-        """The last test passed on both sides."""
-        return lam_max <= self.threshold and self.last_min >= self.lower
+        """The last test passed.  The lower side (no noise left: a stuck output) is tested only on windows
+        whose noise was not grown by measured vibration: an estimated vibration variance (+-30 % from 0.5 s of
+        accelerometer) makes ``lambda_min`` meaningless."""
+        return lam_max <= self.threshold and (self.last_min >= self.lower or any(self.inflated))
+
+    def certifies_recovery(self, lam_max: float) -> bool:
+        """Readmission needs a window passing both sides (an over-estimated vibration makes the lower side
+        harder to pass, never easier) in which at most a third of the residuals had their noise grown by
+        vibration: residuals drowned in vibration cannot show that an offset has gone."""
+        return lam_max <= self.threshold and self.last_min >= self.lower and sum(self.inflated) <= self.n // 3
 
     def reset(self) -> None:
         self.window.clear()
+        self.inflated.clear()
         self.count = 0
 
 
@@ -159,6 +196,16 @@ class _Pending:
     z: np.ndarray
     nav: gtsam.NavState  # propagated state at the measurement
     extra: np.ndarray | None = None  # velocity for the tracker, body rate for the velocity factor
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector ``a`` to unit vector ``b`` (Rodrigues; a and b nearly equal)."""
+    axis = mt.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-15:
+        return np.eye(3)
+    K = so3.hat(axis / s)
+    return np.eye(3) + s * K + (1.0 - c) * K @ K
 
 
 def _navstate_values(nav: gtsam.NavState, k: int) -> gtsam.Values:
@@ -190,7 +237,8 @@ class TrackerEstimator:
         self._noise_models = {
             "tracker0": gtsam.noiseModel.Isotropic.Sigma(3, noise.tracker_sigma_m),
             "tracker0/velocity": gtsam.noiseModel.Isotropic.Sigma(3, noise.tracker_velocity_sigma_m_s),
-            "cam0": gtsam.noiseModel.Isotropic.Sigma(2, noise.cam_sigma_rad)}
+            "cam0": gtsam.noiseModel.Isotropic.Sigma(2, noise.cam_sigma_rad),
+            "incl0": gtsam.noiseModel.Isotropic.Sigma(2, noise.incl_sigma_rad)}
         self._chi2_threshold = {d: float(stats.chi2.ppf(1.0 - g.gate_alpha, d)) for d in (2, 3)}
         rates = {"tracker0": 50.0, "incl0": 10.0, "cam0": 10.0}
         # soft-fault detection watches the inclinometer, the sensor vibration and drift corrupt (the patent's
@@ -212,11 +260,26 @@ class TrackerEstimator:
         self._latest = {}  # sensor -> last raw sample, for initialisation
         self._pending: list[_Pending] = []
         self._decisions: list[dict] = []
-        self._acc_sum = np.zeros(3)
-        self._acc_sq = np.zeros(3)
-        self._acc_n = 0
+        self._incl_residuals: deque = deque(maxlen=g.diff_window + 1)  # inclinometer prediction errors (rad)
+        self._incl_up_last, self._incl_t_last, self._incl_dt_s = None, None, None
+        self._vibration_hint = False
+        self._fault_t_ns: dict[str, int] = {}
+        self._grace_until_ns: dict[str, int] = {}
+        self._bias_increments: deque = deque(maxlen=g.bias_drift_window)
+        self._carried_removals: list[int] = []  # factor indices to remove at the next update
+        # accelerometer history with stamps: the vibration window centred on an inclinometer sample, plus margin
+        n_buf = int(round((g.vibration_window_s + 2 * options.keyframe_s + 0.1) * noise.imu_rate_hz)) + 8
+        self._acc_t = np.zeros(2 * n_buf, dtype=np.int64)  # ring kept contiguous: written twice, read as a slice
+        self._acc = np.zeros((2 * n_buf, 3))
+        self._acc_n, self._acc_len = 0, n_buf
+        self._deferred: list = []
+        self._removed_indices: set = set()  # bounded: duplicates only arise within the deferral (< 1 s)
+        self._removed_order: deque = deque(maxlen=4096)  # inclinometer factors waiting for the accelerometer after them
         self.counts = {"accepted": 0, "rejected": 0, "held_out": 0, "removed": 0}
-        self.graph_log: list | None = [] if options.keep_graph else None  # [factor, tag, keyframe, removed]
+        # [factor, tag, keyframe, removed, meta]: meta holds what the audit needs to rebuild the factor with
+        # calibration effects (selfcal.audit.tracker_system)
+        self.graph_log: list | None = [] if options.keep_graph else None
+        self._meta: dict[int, dict] = {}  # id(factor object) -> meta, until the factor enters the graph
         self._log_position: dict[int, int] = {}  # smoother factor index -> position in graph_log
         self.keyframe_t_ns: list[int] = [] if options.keep_graph else None
         self.initial_values = gtsam.Values() if options.keep_graph else None
@@ -239,8 +302,9 @@ class TrackerEstimator:
             return out
         self.pim.integrateMeasurement(a_prev, g_prev, dt)
         self._last_imu = (t_ns, gyro, accel)
-        self._acc_sum += accel
-        self._acc_sq += accel**2
+        i = self._acc_n % self._acc_len
+        self._acc_t[i] = self._acc_t[i + self._acc_len] = t_ns
+        self._acc[i] = self._acc[i + self._acc_len] = accel
         self._acc_n += 1
         if (t_ns - self.kf_t_ns) * 1e-9 >= self.options.keyframe_s - 0.5 / self.noise.imu_rate_hz:
             out.append(self._keyframe(t_ns))
@@ -321,9 +385,20 @@ class TrackerEstimator:
             self.keyframe_t_ns.append(t_ns)
             self.initial_values.insert(values)
 
-    def _update(self, graph, values, tags, k, to_remove=()):
+    def _remember(self, factor, **meta):
+        """Keep the measurement behind a factor for the audit (only when the graph is kept)."""
+        if self.graph_log is not None:
+            self._meta[id(factor)] = meta
+        return factor
+
+    def _update(self, graph, values, tags, k, to_remove=(), metas=None):
         """One smoother update (new keyframe, its factors, factors to remove); remembers the new indices."""
-        to_remove = list(to_remove)
+        to_remove = [i for i in dict.fromkeys(to_remove) if i not in self._removed_indices]
+        for i in to_remove:  # a factor may be named twice (fault window, provisional replaced): removed once
+            if len(self._removed_order) == self._removed_order.maxlen:
+                self._removed_indices.discard(self._removed_order[0])
+            self._removed_order.append(i)
+            self._removed_indices.add(i)
         if to_remove:
             self.counts["removed"] += len(to_remove)
             if self.graph_log is not None:
@@ -340,7 +415,7 @@ class TrackerEstimator:
                 self._recent[tag.split("/")[0]].append((k, int(idx)))
             if self.graph_log is not None:
                 self._log_position[int(idx)] = len(self.graph_log)
-                self.graph_log.append([graph.at(i), tag, k, False])
+                self.graph_log.append([graph.at(i), tag, k, False, metas[i] if metas else None])
         return indices
 
     def _estimate(self, k):
@@ -348,18 +423,164 @@ class TrackerEstimator:
         est = s.calculateEstimate()
         return est.atPose3(X(k)), est.atVector(V(k)), est.atConstantBias(B(k))
 
-    def _vibration_sigma(self) -> float:
-        """Extra inclinometer sigma (rad) from the accelerometer's excess variance over the keyframe interval."""
-        n = self._acc_n
-        if n < 3 or not self.options.gating.vibration_inflation:
-            return 0.0
-        var = (self._acc_sq - self._acc_sum**2 / n).sum() / (n - 1)
-        white = 3.0 * self.noise.accel_noise_density**2 * self.noise.imu_rate_hz
-        if var <= white * _variance_ratio_999(3 * (n - 1)):
-            return 0.0
-        return float(np.sqrt(var - white) / self.noise.gravity_m_s2)
+    def _vibration_covariance(self, R_W_B: np.ndarray, t_ns: int) -> np.ndarray | None:
+        """Extra covariance (2x2, rad^2, in the inclinometer factor's error coordinates) of the inclinometer from
+        the vibration the accelerometer itself shows, or None when it shows none.
 
-    def _factor_for(self, m: _Pending, k: int, nav_k: gtsam.NavState, incl_sigma: float):
+        The inclinometer reads the direction of the specific force averaged over ``incl_average_s``; its error is
+        the horizontal part of that average over g.  The accelerometer sees the same force: its last
+        ``vibration_window_s`` of samples centred on the inclinometer's sample time ``t_ns`` (its factor waits
+        half a window for them: the accelerometer sees a burst's onset only as it happens), averaged in blocks
+        of the inclinometer's own length (the same low-pass),
+        give m block means whose horizontal components (perpendicular to the predicted up, body frame) have the
+        sample covariance ``C``; without vibration ``C ~ sigma_w^2 Wishart_2(m - 1) / (m - 1)`` with
+        ``sigma_w^2 = accel_noise_density^2 rate / n_avg``.  When ``trace C`` exceeds its white-noise level at
+        ``vibration_alpha``, the excess ``C - sigma_w^2 I`` (eigenvalues clipped at 0) over g^2 is the tilt
+        disturbance's covariance, anisotropic as the vibration is, rotated into the factor's error coordinates
+        (the tangent basis of the world's up: ``e = basis^T R_W_B d_B``).  ``| |f| - g |`` (the ship system's
+        disturbance measure) is not used: it is mostly the vertical part, which does not tilt the reading.
+        """
+        g, n = self.options.gating, self.noise
+        self._vibration_hint = False
+        if not g.vibration_inflation:
+            return None
+        n_avg = max(1, int(round(n.incl_average_s * n.imu_rate_hz)))
+        half_ns = 0.5e9 * g.vibration_window_s
+        start = self._acc_n % self._acc_len if self._acc_n >= self._acc_len else 0
+        count = min(self._acc_n, self._acc_len)
+        stamps = self._acc_t[start:start + count]  # oldest first
+        lo, hi = np.searchsorted(stamps, [t_ns - half_ns, t_ns + half_ns], side="left")
+        acc = self._acc[start + lo:start + hi]
+        m = len(acc) // n_avg
+        if m < 3:
+            return None
+        acc = acc[:m * n_avg].reshape(m, n_avg, 3).mean(axis=1)
+        up_B = R_W_B[2]  # R_W_B^T e_z
+        h1 = np.array([1.0, 0.0, 0.0]) - up_B[0] * up_B  # body x made horizontal (tilts are small)
+        h1 /= np.linalg.norm(h1)
+        H = np.column_stack([h1, mt.cross(up_B, h1)])  # horizontal orthonormal basis of the body frame
+        h = acc @ H
+        h = h - h.mean(axis=0)
+        C = h.T @ h / (m - 1)
+        white = n.accel_noise_density**2 * n.imu_rate_hz / n_avg
+        ratio = np.trace(C) / (2 * white)
+        self._vibration_hint = ratio > _variance_ratio(2 * (m - 1), g.vibration_hint_alpha)
+        if ratio <= _variance_ratio(2 * (m - 1), g.vibration_alpha):
+            return None
+        lam, U = np.linalg.eigh(C)
+        C_B = (U * np.maximum(lam - white, 0.0)) @ U.T / n.gravity_m_s2**2
+        M = _UP_BASIS.T @ R_W_B @ H
+        return M @ C_B @ M.T
+
+    def _with_own_vibration(self, factor, values: gtsam.Values, incl_cov: np.ndarray | None, up_B: np.ndarray):
+        """The inclinometer factor with its covariance grown by the vibration its own residuals show.
+
+        Below ~1e-3 rad the accelerometer (white noise ~33 inclinometer sigmas per sample) cannot see vibration
+        the inclinometer feels.  The inclinometer's own residual, differenced between consecutive samples,
+        shows it: vibration at 3-25 Hz sampled at 10 Hz is nearly white there, while a soft fault (offset, ramp,
+        stuck output) is slow and cancels in the difference.  Under no vibration ``|d|^2 / v0`` with ``v0 = 2
+        sigma^2 + gyro noise over the sample interval`` is chi2(2)-like per difference; the median of the last
+        ``diff_window`` is robust to a spike.  When it exceeds ``diff_ratio`` times its null median (a
+        fault-free probability below 1 % for 10 differences: order statistic of exponentials), the excess
+        ``(median / ln 4 - v0) / 2`` per axis joins the covariance (isotropic), unless the accelerometer's
+        estimate is already larger.
+        """
+        g, n = self.options.gating, self.noise
+        e = np.asarray(factor.unwhitenedError(values))
+        buf = self._incl_residuals
+        buf.append(e)
+        if not g.vibration_inflation or len(buf) < g.diff_window + 1:
+            return factor
+        d = np.diff(np.array(buf), axis=0)
+        rate = 10.0 if self._incl_dt_s is None else 1.0 / self._incl_dt_s
+        v0 = 2 * n.incl_sigma_rad**2 + n.gyro_noise_density**2 / rate
+        med = float(np.median(np.einsum("ij,ij->i", d, d)))
+        if med <= g.diff_ratio * v0 * 2 * np.log(2):
+            return factor
+        excess = 0.5 * (med / (2 * np.log(2)) - v0)
+        base = np.zeros((2, 2)) if incl_cov is None else incl_cov
+        if excess <= 0.5 * np.trace(base):
+            return factor
+        cov = n.incl_sigma_rad**2 * np.eye(2) + base + (excess - 0.5 * np.trace(base)) * np.eye(2)
+        return ft.inclinometer_factor(gtsam.noiseModel.Gaussian.Covariance(cov), factor.keys()[0], up_B)
+
+    def _provisional_inclinometer(self, t_m: int, k: int, values: gtsam.Values, P_blocks: dict, t_ns: int) -> list:
+        """An inclinometer sample enters at once, provisionally, with the vibration of the last window (causal),
+        when it passes the chi-square gate: the online pose then has it without delay.  Its decision proper waits
+        for the centred window (:meth:`_deferred_inclinometer`), which keeps it, re-weights it or removes it."""
+        entry = {"t": t_m, "k": k, "up": self._incl_up_last, "index": None, "values": values, "P": P_blocks}
+        self._deferred.append(entry)
+        if self.faulty["incl0"] or not self.options.gating.vibration_inflation:
+            return []
+        R = values.atPose3(X(k)).rotation().matrix()
+        cov = self._vibration_covariance(R, t_ns - int(0.5e9 * self.options.gating.vibration_window_s))
+        factor = self._incl_factor(k, entry["up"], cov)
+        stat, _ = self._innovation(factor, values, P_blocks)
+        if self.options.gating.chi2 and stat > self._chi2_threshold[2]:
+            return []
+        entry["index"], entry["cov"] = -1, cov  # -1: index known after the smoother update
+        if self.graph_log is not None:  # the audit's record (batch runs only)
+            self._remember(factor, t_ns=t_m, up_B=entry["up"], cov=self._incl_cov(cov),
+                           f_B=self._mean_specific_force(t_m))
+        return [(factor, "incl0/provisional")]
+
+    def _incl_cov(self, cov: np.ndarray | None, factor=None) -> np.ndarray:
+        """The inclinometer factor's whole covariance (2x2, rad^2, world up's tangent basis)."""
+        if factor is not None:
+            R = factor.noiseModel().R()
+            return np.linalg.inv(R.T @ R)
+        return self.noise.incl_sigma_rad**2 * np.eye(2) + (0.0 if cov is None else cov)
+
+    def _mean_specific_force(self, t_ns: int) -> np.ndarray:
+        """Accelerometer mean over the inclinometer's averaging window before ``t_ns`` (bias not removed)."""
+        n_avg = max(1, int(round(self.noise.incl_average_s * self.noise.imu_rate_hz)))
+        start = self._acc_n % self._acc_len if self._acc_n >= self._acc_len else 0
+        stamps = self._acc_t[start:start + min(self._acc_n, self._acc_len)]
+        hi = int(np.searchsorted(stamps, t_ns, side="left"))
+        return self._acc[start + max(hi - n_avg, 0):start + max(hi, 1)].mean(axis=0)
+
+    def _incl_factor(self, k: int, up_B: np.ndarray, cov: np.ndarray | None):
+        noise = self._noise_models["incl0"] if cov is None else gtsam.noiseModel.Gaussian.Covariance(
+            self.noise.incl_sigma_rad**2 * np.eye(2) + cov)
+        return ft.inclinometer_factor(noise, X(k), up_B)
+
+    def _deferred_inclinometer(self, t_ns: int, k: int, values: gtsam.Values, P_blocks: dict) -> list:
+        """Gate the inclinometer samples whose centred vibration window is complete (see
+        :meth:`_vibration_covariance`); each factor stays on the keyframe it arrived at, its innovation is the
+        one predicted at its arrival."""
+        half_ns = 0.5e9 * self.options.gating.vibration_window_s
+        if not self.options.gating.vibration_inflation:
+            half_ns = 0.0
+        ready = [d for d in self._deferred if d["t"] + half_ns <= t_ns]
+        self._deferred = [d for d in self._deferred if d["t"] + half_ns > t_ns]
+        out = []
+        if not ready:
+            return out
+        for d in ready:
+            # the innovation against the prediction at its arrival (before the sample, provisional or not,
+            # entered), with the noise of the centred window
+            t_m, km, up, vals, P = d["t"], d["k"], d["up"], d.pop("values"), d.pop("P")
+            R = vals.atPose3(X(km)).rotation().matrix()
+            cov = self._vibration_covariance(R, t_m)
+            factor = self._with_own_vibration(self._incl_factor(km, up, cov), vals, cov, up)
+            stat, nu = self._innovation(factor, vals, P)
+            if self.options.gating.eigen and self.options.gating.recursor:
+                self._recursor_test(factor, km, t_m)
+            nominal = cov is None and np.allclose(factor.noiseModel().sigmas(), self.noise.incl_sigma_rad)
+            keep = self._gate("incl0", t_m, stat, nu, k, inflated=not nominal, excused=self._vibration_hint)
+            if d["index"] is not None:
+                unchanged = nominal and d["cov"] is None
+                if keep and unchanged:
+                    continue  # the provisional factor stands as it is
+                self._to_remove.append(d["index"])
+            if keep:
+                if self.graph_log is not None:  # the audit's record (batch runs only)
+                    self._remember(factor, t_ns=t_m, up_B=up, cov=self._incl_cov(cov, factor),
+                                   f_B=self._mean_specific_force(t_m))
+                out.append((factor, "incl0"))
+        return out
+
+    def _factor_for(self, m: _Pending, k: int, nav_k: gtsam.NavState):
         """The measurement moved to keyframe k (see module docstring), as GTSAM factors (and their tags)."""
         n = self.noise
         R_m, R_k = m.nav.attitude().matrix(), nav_k.attitude().matrix()
@@ -374,9 +595,18 @@ class TrackerEstimator:
             return factors
         dR = R_m.T @ R_k
         if m.sensor == "incl0":
-            noise = gtsam.noiseModel.Isotropic.Sigma(2, float(np.hypot(n.incl_sigma_rad, incl_sigma)))
-            return [(ft.inclinometer_factor(noise, X(k), dR.T @ m.z), "incl0")]
-        bearing = n.R_B_C.T @ dR.T @ n.R_B_C @ m.z
+            noise = self._noise_models["incl0"]
+            self._incl_up_last = dR.T @ m.z
+            if self._incl_t_last is not None:
+                self._incl_dt_s = (m.t_ns - self._incl_t_last) * 1e-9
+            self._incl_t_last = m.t_ns
+            return [(ft.inclinometer_factor(noise, X(k), self._incl_up_last), "incl0")]
+        # the beam's bearing changes with the rotation AND the translation between the two instants (a target
+        # moving 0.1 m/s at 30 m turns the beam by 3e-4 rad in 0.1 s): the measured bearing is turned by the
+        # rotation that takes the bearing predicted at the measurement to the one predicted at the keyframe
+        b_m = mt.beam_direction_C(R_m, m.nav.position(), n.r_C_B, n.R_B_C, n.tracker_W)
+        b_k = mt.beam_direction_C(R_k, nav_k.position(), n.r_C_B, n.R_B_C, n.tracker_W)
+        bearing = _rotation_between(b_m / np.linalg.norm(b_m), b_k / np.linalg.norm(b_k)) @ m.z
         return [(ft.beam_bearing_factor(self._noise_models["cam0"], X(k), bearing, n.r_C_B, n.R_B_C, n.tracker_W),
                  "cam0")]
 
@@ -395,7 +625,8 @@ class TrackerEstimator:
         nu = np.linalg.solve(L, -b)
         return float(nu @ nu), nu
 
-    def _gate(self, tag: str, t_ns: int, stat: float, nu: np.ndarray, k: int) -> bool:
+    def _gate(self, tag: str, t_ns: int, stat: float, nu: np.ndarray, k: int, inflated: bool = False,
+              excused: bool = False) -> bool:
         """Chi-square gate and eigenvalue detector for one measurement; logs the decision; True = add it."""
         gating = self.options.gating
         sensor = tag.split("/")[0]
@@ -409,44 +640,84 @@ class TrackerEstimator:
             decision["decision"] = "held_out"
             self.counts["held_out"] += 1
             if detector is not None:  # monitored while held out: readmitted when a full window looks healthy
-                lam = detector.push(nu)
-                if lam is not None and detector.healthy(lam):
+                lam = detector.push(nu, inflated)
+                held_s = (t_ns - self._fault_t_ns.get(sensor, t_ns)) * 1e-9
+                healthy = lam is not None and detector.certifies_recovery(lam)
+                if healthy or (lam is not None and held_s > gating.max_holdout_s
+                               and detector.last_min >= detector.lower):
                     self.faulty[sensor] = False
                     detector.reset()
+                    outcome = "recovered" if healthy else "readmitted_after_holdout"
+                    if not healthy:  # the state is off: the sensor's samples enter ungated until it has come back
+                        self._grace_until_ns[sensor] = int(t_ns + 1e9 * gating.max_grace_s)
                     self._decisions_now.append({"t_ns": int(t_ns), "sensor": tag, "test": "eigen", "statistic": lam,
                                                 "threshold": detector.threshold, "lambda_min": detector.last_min,
-                                                "lower_threshold": detector.lower, "decision": "recovered"})
-                    log.info("%s recovered (lambda_max %.1f <= %.1f)", tag, lam, detector.threshold)
+                                                "lower_threshold": detector.lower, "decision": outcome,
+                                                "held_out_s": held_s})
+                    log.info("%s %s after %.0f s (lambda_max %.1f vs %.1f)", tag, outcome, held_s, lam,
+                             detector.threshold)
             return False
+        monitored = gating.eigen and detector is not None
+        if t_ns < self._grace_until_ns.get(sensor, 0):
+            # readmitted after a long hold-out: it has to pull the state back (tilt and accelerometer bias
+            # together, against the bias's random walk: seconds), so it is not gated and cannot be accused until a
+            # window of its residuals looks healthy again (or max_grace_s has passed)
+            decision["decision"] = "accept_grace"
+            self.counts["accepted"] += 1
+            if detector is not None:
+                lam = detector.push(nu, inflated)
+                if lam is not None and detector.healthy(lam):
+                    del self._grace_until_ns[sensor]
+            return True
         if gating.chi2 and stat > threshold:
             self._consecutive[tag] = self._consecutive.get(tag, 0) + 1
+            if monitored:
+                # a rejected sample still goes to the soft-fault detector, shrunk onto the gate's boundary
+                # (winsorised: a lone spike adds at most the threshold to the window, while a run of rejects -- a
+                # ramp or an offset the gate keeps catching -- fills the window and raises the alarm within
+                # seconds); hiding rejects from it would leave a soft fault to the gate alone
+                decision["decision"] = "reject"
+                self.counts["rejected"] += 1
+                if excused:  # the accelerometer shows vibration starting: the reject is not evidence of a fault
+                    decision["vibration"] = True
+                else:
+                    self._monitor(tag, detector, nu * np.sqrt(threshold / stat), t_ns, k, inflated)
+                return False
             if self._consecutive[tag] <= gating.max_consecutive_rejects:
                 decision["decision"] = "reject"
                 self.counts["rejected"] += 1
                 return False
-            # a sensor rejected for so long is more likely right than the state: the state has drifted away
-            # (e.g. pulled by another sensor's undetected fault) and only this sensor can bring it back
+            # an unmonitored sensor (tracker, camera: sole sources of position and azimuth) rejected for so long
+            # is more likely right than the state: the state has drifted away and only this sensor can bring it
+            # back
             decision["decision"] = "accept_after_rejects"
             self._consecutive[tag] = 0
         else:
             self._consecutive[tag] = 0
             decision["decision"] = "accept"
         self.counts["accepted"] += 1
-        if gating.eigen and detector is not None:
-            lam = detector.push(nu)
-            if lam is not None and not detector.healthy(lam) and not any(self.faulty.values()):
-                # single-fault assumption: while one sensor is held out the others' residuals carry its
-                # pull on the state, so their windows restart instead of accusing them in cascade
-                self.faulty[sensor] = True
-                for d in self.detectors.values():
-                    d.reset()
-                self._decisions_now.append({"t_ns": int(t_ns), "sensor": tag, "test": "eigen", "statistic": lam,
-                                            "threshold": detector.threshold, "lambda_min": detector.last_min,
-                                            "lower_threshold": detector.lower, "decision": "fault"})
-                log.info("%s soft fault (lambda_max %.1f vs %.1f, lambda_min %.2f vs %.2f)", tag, lam,
-                         detector.threshold, detector.last_min, detector.lower)
-                self._to_remove.extend(self._removable(sensor, k))
+        if monitored:
+            self._monitor(tag, detector, nu, t_ns, k, inflated)
         return True
+
+    def _monitor(self, tag: str, detector: EigenDetector, nu: np.ndarray, t_ns: int, k: int,
+                 inflated: bool = False) -> None:
+        """Feed the soft-fault detector; on an alarm hold the sensor out and remove its recent factors."""
+        sensor = tag.split("/")[0]
+        lam = detector.push(nu, inflated)
+        if lam is not None and not detector.healthy(lam) and not any(self.faulty.values()):
+            # single-fault assumption: while one sensor is held out the others' residuals carry its
+            # pull on the state, so their windows restart instead of accusing them in cascade
+            self.faulty[sensor] = True
+            self._fault_t_ns[sensor] = int(t_ns)
+            for d in self.detectors.values():
+                d.reset()
+            self._decisions_now.append({"t_ns": int(t_ns), "sensor": tag, "test": "eigen", "statistic": lam,
+                                        "threshold": detector.threshold, "lambda_min": detector.last_min,
+                                        "lower_threshold": detector.lower, "decision": "fault"})
+            log.info("%s soft fault (lambda_max %.1f vs %.1f, lambda_min %.2f vs %.2f)", tag, lam,
+                     detector.threshold, detector.last_min, detector.lower)
+            self._to_remove.extend(self._removable(sensor, k))
 
     def _recursor_reset(self, R: np.ndarray, cov_rot: np.ndarray) -> None:
         self._rec_R, self._rec_cov = R.copy(), cov_rot.copy()
@@ -492,13 +763,22 @@ class TrackerEstimator:
         H = np.hstack([-R_k @ so3.hat(r), R_k])
         S = H @ P_blocks["x"] @ H.T + n.tracker_sigma_m**2 * np.eye(3)
         L = np.linalg.cholesky(S)
-        nu = solve_triangular(L, (Z - pred).T, lower=True).T
+        # L^-1 of a 3x3 once, then one small product: scipy's solve_triangular (LAPACK trtrs) costs ~7 ms a call
+        # on a loaded machine with OpenBLAS threads, more than the whole keyframe update
+        nu = (Z - pred) @ np.linalg.inv(L).T
         stat = np.einsum("ij,ij->i", nu, nu)
         keep = np.array([self._gate("tracker0", m.t_ns, float(s), v, k) for m, s, v in zip(pending, stat, nu)])
         out = []
         if keep.any():
             noise = gtsam.noiseModel.Isotropic.Sigma(3, n.tracker_sigma_m / np.sqrt(keep.sum()))
-            out.append((ft.prism_position_factor(noise, X(k), Z[keep].mean(axis=0), r), "tracker0"))
+            factor = ft.prism_position_factor(noise, X(k), Z[keep].mean(axis=0), r)
+            if self.graph_log is not None:  # the audit's record (batch runs only)
+                kept = [m for m, kk in zip(pending, keep) if kk]
+                velocities = np.array([m.extra[:3] for m in kept]) if all(m.extra is not None for m in kept) else None
+                self._remember(factor, Z=Z[keep], sigma=n.tracker_sigma_m, t_ns=[m.t_ns for m in kept],
+                               v_start=self.nav.velocity(),  # the filtered velocity the samples were moved with
+                               V=velocities)
+            out.append((factor, "tracker0"))
         with_velocity = [i for i, m in enumerate(pending) if keep[i] and m.extra is not None]
         if with_velocity:
             vel = np.array([pending[i].extra[:3] + v_k - pending[i].nav.velocity() for i in with_velocity])
@@ -509,10 +789,14 @@ class TrackerEstimator:
             # the mean of n samples: state uncertainty unchanged, measurement noise / n
             Sv = Hv @ P @ Hv.T + n.tracker_velocity_sigma_m_s**2 / len(with_velocity) * np.eye(3)
             e = vel.mean(axis=0) - mt.prism_velocity_W(R_k, v_k, w, r)
-            nu_v = solve_triangular(np.linalg.cholesky(Sv), e, lower=True)
+            nu_v = np.linalg.solve(np.linalg.cholesky(Sv), e)
             if self._gate("tracker0/velocity", pending[with_velocity[-1]].t_ns, float(nu_v @ nu_v), nu_v, k):
                 noise = gtsam.noiseModel.Isotropic.Sigma(3, n.tracker_velocity_sigma_m_s / np.sqrt(len(with_velocity)))
-                out.append((ft.prism_velocity_factor(noise, X(k), V(k), vel.mean(axis=0), w, r), "tracker0/velocity"))
+                factor = ft.prism_velocity_factor(noise, X(k), V(k), vel.mean(axis=0), w, r)
+                if self.graph_log is not None:  # the audit's record (batch runs only)
+                    self._remember(factor, z=vel.mean(axis=0), w_B=w, sigma=n.tracker_velocity_sigma_m_s / np.sqrt(
+                        len(with_velocity)), a_W=(v_k - self.nav.velocity()) / max(self.pim.deltaTij(), 1e-3))
+                out.append((factor, "tracker0/velocity"))
         return out
 
     def _keyframe(self, t_ns: int) -> dict:
@@ -522,13 +806,14 @@ class TrackerEstimator:
         values.insert(B(k), self.bias)
         graph.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), self.pim))
         tags.append(None)
+        metas = [None]
         cov = self.pim.preintMeasCov()
         dt = self.pim.deltaTij()
         P_pose = self._P_pose + cov[:6, :6]
         P_pose[3:, 3:] += dt**2 * self._P_vel
         P_blocks = {"x": P_pose, "v": self._P_vel + cov[6:9, 6:9]}
-        incl_sigma = self._vibration_sigma()
-        self._decisions_now, self._to_remove, accepted = [], [], []
+        self._decisions_now, self._to_remove, accepted = [], self._carried_removals, []
+        self._carried_removals = []
         # the state recursor rides on the gyro alone: attitude of the last reset times the gyro's rotation
         self._rec_R = self._rec_R @ self.pim.deltaRij().matrix()
         self._rec_cov = self._rec_cov + self.noise.gyro_noise_density**2 * dt * np.eye(3)
@@ -538,13 +823,16 @@ class TrackerEstimator:
         for m in self._pending:
             if m.sensor == "tracker0":
                 continue
-            for factor, tag in self._factor_for(m, k, nav_k, incl_sigma):
+            for factor, tag in self._factor_for(m, k, nav_k):
+                if tag == "incl0":
+                    accepted.extend(self._provisional_inclinometer(m.t_ns, k, values, P_blocks, t_ns))
+                    continue
                 stat, nu = self._innovation(factor, values, P_blocks)
-                if tag == "incl0" and self.options.gating.eigen and self.options.gating.recursor:
-                    self._recursor_test(factor, k, m.t_ns)
                 if self._gate(tag, m.t_ns, stat, nu, k):
                     accepted.append((factor, tag))
         self._pending = []
+        accepted.extend(self._deferred_inclinometer(t_ns, k, values, P_blocks))
+        provisional = [d for d in self._deferred if d["index"] == -1]
         decisions, to_remove = self._decisions_now, self._to_remove
         for factor, tag in accepted:  # a sensor found faulty in this keyframe keeps none of its new factors
             if self.faulty[tag.split("/")[0]]:
@@ -552,23 +840,30 @@ class TrackerEstimator:
                 continue
             graph.add(factor)
             tags.append(tag)
+            metas.append(self._meta.pop(id(factor), None))
         self.kf_t_ns = t_ns
         self.k = k
-        self._update(graph, values, tags, k, to_remove)
+        self._meta.clear()
+        indices = self._update(graph, values, tags, k, to_remove, metas)
+        waiting = iter(provisional)
+        for idx, tag in zip(indices, tags):
+            if tag == "incl0/provisional":
+                next(waiting)["index"] = int(idx)
+        for d in provisional:
+            if d["index"] == -1:
+                d["index"] = None  # not added after all (its sensor was found faulty in this keyframe)
         if self.keyframe_t_ns is not None:
             self.keyframe_t_ns.append(t_ns)
             self.initial_values.insert(values)
         pose, vel, bias = self._estimate(k)
         self.nav = gtsam.NavState(pose.rotation(), pose.translation(), vel)
+        self._bias_drift_check(bias, t_ns, k, dt)
         self.bias = bias
         self.pim.resetIntegrationAndSetBias(bias)
         if self._restart_recursor:
             self._restart_recursor = False
             P_rot = self._P_pose[:3, :3] if self.options.covariance else P_pose[:3, :3]
             self._recursor_reset(pose.rotation().matrix(), P_rot)
-        self._acc_sum[:] = 0.0
-        self._acc_sq[:] = 0.0
-        self._acc_n = 0
         covariance = None
         if self.options.covariance:
             self._P_pose = self._smoother.marginalCovariance(X(k))
@@ -586,30 +881,85 @@ class TrackerEstimator:
                 "quaternion": [q.x(), q.y(), q.z(), q.w()],
                 "covariance": covariance, "faults": dict(self.faulty), "decisions": decisions}
 
+    def _bias_drift_check(self, bias, t_ns: int, k: int, dt: float) -> None:
+        """The accelerometer-bias drift test (see ``GatingOptions.bias_drift_z``); on an alarm the inclinometer
+        is held out and its recent factors are removed at the next update."""
+        g = self.options.gating
+        if not (g.eigen and "incl0" in self.detectors) or dt <= 0:
+            return
+        if self.faulty["incl0"] or t_ns < self._grace_until_ns.get("incl0", 0):
+            self._bias_increments.clear()  # held out or pulling the state back: the bias moves legitimately
+            self._bias_drift_prev = None
+            return
+        a = np.asarray(bias.accelerometer())
+        previous = getattr(self, "_bias_drift_prev", None)
+        self._bias_drift_prev = a
+        if previous is None:
+            return
+        self._bias_increments.append((a - previous)[:2] / (self.noise.accel_random_walk * np.sqrt(dt)))
+        if len(self._bias_increments) < g.bias_drift_window or (t_ns - self.t0_ns) * 1e-9 < g.bias_drift_settle_s:
+            return
+        z = float(np.max(np.abs(np.sum(self._bias_increments, axis=0)))) / np.sqrt(g.bias_drift_window)
+        if z <= g.bias_drift_z or any(self.faulty.values()):
+            return
+        self.faulty["incl0"] = True
+        self._fault_t_ns["incl0"] = int(t_ns)
+        for d in self.detectors.values():
+            d.reset()
+        self._bias_increments.clear()
+        self._decisions_now.append({"t_ns": int(t_ns), "sensor": "incl0", "test": "bias_drift", "statistic": z,
+                                    "threshold": g.bias_drift_z, "decision": "fault"})
+        log.info("incl0 soft fault from the accelerometer bias drift (z %.1f > %.1f)", z, g.bias_drift_z)
+        self._carried_removals.extend(self._removable("incl0", k))
+
     def _removable(self, tag: str, k: int) -> list[int]:
         """Factor indices of ``tag`` from the detection window still inside the smoother (not marginalised)."""
-        margin = int(np.ceil(self.options.lag_s / self.options.keyframe_s)) - 2
+        # factors are logged with the keyframe they entered at; a deferred inclinometer factor sits on a keyframe
+        # up to the deferral older
+        defer = int(np.ceil(0.5 * self.options.gating.vibration_window_s / self.options.keyframe_s)) + 1
+        margin = int(np.ceil(self.options.lag_s / self.options.keyframe_s)) - 2 - defer
         out = [idx for kf, idx in self._recent[tag] if self.options.mode == "isam2" or k - kf < margin]
         self._recent[tag].clear()
         return out
 
 
+def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int = 5,
+                 tol: float = 1e-7) -> gtsam.Values:
+    """Gauss-Newton from a close start (the online pass's estimates), Levenberg-Marquardt if a step fails.
+
+    From there the problem is nearly linear: 2-3 steps converge (largest tangent step below ``tol``).  GTSAM's
+    LM re-evaluates the Python factors for every damping trial, ~5x slower here.
+    """
+    error = graph.error(values)
+    for _ in range(max_iterations):
+        delta = graph.linearize(values).optimize()
+        new = values.retract(delta)
+        new_error = graph.error(new)
+        if new_error > error * (1 + 1e-9):
+            log.info("Gauss-Newton step raised the error (%.6g -> %.6g): Levenberg-Marquardt", error, new_error)
+            return optimize(graph, values, max_iterations=30)
+        values, error = new, new_error
+        if np.max(np.abs(delta.vector())) < tol:
+            break
+    return values
+
+
 def batch_smooth(estimator: TrackerEstimator, covariance: bool = False):
-    """Levenberg-Marquardt over every keyframe with the factors the online pass accepted (and did not remove).
+    """Gauss-Newton (LM fallback) over every keyframe with the factors the online pass accepted (not removed).
 
     Returns (t_ns (K,), poses list[Pose3], covariances list or None).
     """
     if estimator.graph_log is None:
         raise ValueError("the estimator must run with TrackerOptions(keep_graph=True)")
     graph = gtsam.NonlinearFactorGraph()
-    for factor, _, _, removed in estimator.graph_log:
+    for factor, _, _, removed, _ in estimator.graph_log:
         if not removed:
             graph.add(factor)
     if graph.size() == 0:
         raise DegenerateDataError("no keyframe: the recording never had tracker, inclinometer and camera samples")
     t0 = time.perf_counter()
-    result = optimize(graph, estimator.initial_values, max_iterations=30)
-    log.info("batch LM over %d keyframes: %.1f s", len(estimator.keyframe_t_ns), time.perf_counter() - t0)
+    result = gauss_newton(graph, estimator.initial_values)
+    log.info("batch smoother over %d keyframes: %.1f s", len(estimator.keyframe_t_ns), time.perf_counter() - t0)
     K = len(estimator.keyframe_t_ns)
     poses = [result.atPose3(X(k)) for k in range(K)]
     covs = None

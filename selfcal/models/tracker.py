@@ -43,7 +43,8 @@ from selfcal.models.ship import tilt_from_specific_force
 __all__ = ["tilt_from_specific_force", "up_direction_B", "tilt_from_axis_angles", "axis_angles_from_tilt",
            "cross", "prism_position_W", "prism_velocity_W", "prism_velocity_jacobians", "beam_direction_C",
            "beam_bearing_residual", "pixel_from_direction_C", "bearing_from_pixel", "attitude_from_tilt_and_beam",
-           "rotation_from_euler", "euler_from_rotation", "wishart_lambda_max_quantile", "wishart_lambda_min_quantile"]
+           "rotation_from_euler", "euler_from_rotation", "wishart_lambda_max_quantile", "wishart_lambda_min_quantile",
+           "tilt_of_rotation", "inclinometer_reading", "prism_position_delayed"]
 
 E_Z = np.array([0.0, 0.0, 1.0])
 
@@ -141,6 +142,48 @@ def beam_bearing_residual(R_W_B, p_B_W, r_C_B, R_B_C, bearing_C, basis_C, tracke
     J[:, :3] = so3.hat(d_B + r_C_B)
     J[:, 3:] = -np.eye(3)
     return e, basis_C.T @ db_dd @ R_B_C.T @ J
+
+
+def tilt_of_rotation(R_W_B, with_jacobian: bool = False):
+    """(roll, pitch) (rad) of gravity seen in the body, ``tilt(R_W_B^T e_z)``; with the (2, 3) Jacobian on the
+    rotation's right perturbation ``R Exp(w)``: ``d up/dw = [up]x``, then the derivatives of
+    ``roll = atan2(u_y, u_z)``, ``pitch = atan2(-u_x, rho)``, ``rho = hypot(u_y, u_z)``."""
+    u = np.asarray(R_W_B)[2]
+    roll, pitch = tilt_from_specific_force(u)
+    z = np.array([roll, pitch])
+    if not with_jacobian:
+        return z
+    rho2 = u[1] ** 2 + u[2] ** 2
+    rho, n2 = np.sqrt(rho2), rho2 + u[0] ** 2
+    D = np.array([[0.0, u[2] / rho2, -u[1] / rho2],
+                  [-rho / n2, u[0] * u[1] / (rho * n2), u[0] * u[2] / (rho * n2)]])
+    return z, D @ so3.hat(u)
+
+
+def inclinometer_reading(R_W_B, disturbance_rad, bias_rad=np.zeros(2), scale: float = 0.0,
+                         accel_sensitivity: float = 0.0, with_jacobian: bool = False):
+    """Predicted (roll, pitch) reading (rad) of an inclinometer with calibration errors.
+
+    ``z = (1 + scale) (tilt_g + (1 + accel_sensitivity) d) + bias``: ``tilt_g`` is the true tilt
+    (:func:`tilt_of_rotation`), ``d`` (2,) the tilt the non-gravitational acceleration adds to the specific
+    force's direction (what a perfect inclinometer also reads).  The simulator's model, term by term.  With the
+    Jacobians ``{"rotation" (2, 3), "bias" (2, 2), "scale" (2, 1), "accel_sensitivity" (2, 1)}``.
+    """
+    d = np.asarray(disturbance_rad, dtype=float)
+    out = tilt_of_rotation(R_W_B, with_jacobian)
+    tilt, J = out if with_jacobian else (out, None)
+    inner = tilt + (1.0 + accel_sensitivity) * d
+    z = (1.0 + scale) * inner + np.asarray(bias_rad, dtype=float)
+    if not with_jacobian:
+        return z
+    return z, {"rotation": (1.0 + scale) * J, "bias": np.eye(2), "scale": inner[:, None],
+               "accel_sensitivity": ((1.0 + scale) * d)[:, None]}
+
+
+def prism_position_delayed(R_W_B, p_B_W, r_P_B, v_W, dt_s: float) -> np.ndarray:
+    """Prism position a tracker stamping ``dt_s`` late reports: ``p + R r - dt v`` (m; first order in dt, the
+    target moves mm/s to cm/s); ``v_W`` (3,) or (n, 3) gives (3,) or (n, 3)."""
+    return np.asarray(p_B_W) + np.asarray(R_W_B) @ np.asarray(r_P_B, dtype=float) - dt_s * np.asarray(v_W)
 
 
 def pixel_from_direction_C(d_C, camera_matrix, dist_coeffs) -> np.ndarray:

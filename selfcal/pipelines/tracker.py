@@ -35,7 +35,8 @@ def noise_from_meta(meta: dict[str, dict]) -> SensorNoise:
         "accel_random_walk": imu.get("accelerometer_random_walk"),
         "imu_rate_hz": imu.get("rate_hz"), "gravity_m_s2": imu.get("gravity_m_s2"),
         "tracker_sigma_m": tr.get("position_sigma_m"), "tracker_velocity_sigma_m_s": tr.get("velocity_sigma_m_s"),
-        "incl_sigma_rad": inc.get("sigma_rad"), "cam_sigma_px": cam.get("sigma_px")}
+        "incl_sigma_rad": inc.get("sigma_rad"), "incl_average_s": inc.get("averaging_s"),
+        "cam_sigma_px": cam.get("sigma_px")}
     n = replace(n, **{k: float(v) for k, v in updates.items() if v is not None})
     arrays = {"r_P_B": tr.get("lever_arm_prism_m"), "tracker_W": tr.get("tracker_W_m"),
               "r_C_B": cam.get("lever_arm_camera_m"), "R_B_C": cam.get("R_B_C"),
@@ -190,3 +191,19 @@ def patent_baseline(recording: Recording, use_fading: bool = True, use_fault_det
         imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2, tr.t_ns, np.column_stack([tr.values[c] for c in "xyz"]), vel,
         inc.t_ns, np.column_stack([inc.values["roll"], inc.values["pitch"]]), cam.t_ns,
         np.column_stack([cam.values["u"], cam.values["v"]]))
+
+
+def estimator_for_audit(recording: Recording, keyframe_s: float = 0.2) -> TrackerEstimator:
+    """The online pass over a recording (no gating) with every factor and its measurement kept: the input of
+    :class:`selfcal.audit.tracker_system.TrackerAudit` (``selfcal audit REC --system tracker``)."""
+    meta = {name: s.meta for name, s in recording.sensors.items()}
+    # every sample enters: gating would hold out exactly the sensor whose calibration error the audit is to
+    # find (a biased inclinometer disagrees with the camera); the vibration model stays
+    options = TrackerOptions(mode="fixed-lag", keyframe_s=keyframe_s, keep_graph=True,
+                             gating=GatingOptions(chi2=False, eigen=False))
+    tracker = OnlineTracker(noise_from_meta(meta), options=options)
+    for name, t, values in recording_events(recording):
+        tracker.push(name, t, values)
+    if tracker.estimator.k < 0:
+        raise RecordingError(f"{recording.path}: no pose: the tracker, inclinometer and camera never all reported")
+    return tracker.estimator

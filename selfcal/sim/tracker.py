@@ -111,6 +111,11 @@ class TrackerScenario:
     tracker_clock_offset_s : ``t_tracker = t_imu + offset`` (the tracker stamps late by offset; an audit effect).
     lever_arm_prism_m, lever_arm_camera_m : prism and camera positions in the body (IMU) frame, m.
     with_velocity : write tracker velocity columns.
+    steer_angle_deg, steer_period_s : (min, max) amplitude and period of the slow steering sines of roll, pitch
+        and yaw (3 each); larger ones make a calibration run (the audit needs the tilt to vary).
+    steer_position_m, steer_position_period_s : the same for the lateral and vertical position (m, s); a
+        calibration run that moves the target (the clock offset shows only while it moves);
+        ``steer_position_axes`` weights x, y, z (default lateral and vertical).
     """
 
     def __init__(self, duration_s: float = 600.0, seed=0, faults=False, advance_mm_s: float = 1.0,
@@ -119,7 +124,10 @@ class TrackerScenario:
                  incl_sigma_rad: float = 0.005 * DEG, cam_sigma_px: float = 0.2, incl_bias_rad=(0.0, 0.0),
                  incl_scale: float = 0.0, incl_accel_sensitivity: float = 0.0, tracker_clock_offset_s: float = 0.0,
                  lever_arm_prism_m=(0.12, -0.05, 0.25), lever_arm_camera_m=(0.10, 0.03, 0.20),
-                 with_velocity: bool = True, imu_rate_hz: float = 200.0, tracker_rate_hz: float = 50.0,
+                 with_velocity: bool = True, steer_angle_deg=(0.05, 0.3), steer_period_s=(60.0, 600.0),
+                 steer_position_m=(0.002, 0.01), steer_position_period_s=(120.0, 900.0),
+                 steer_position_axes=(0.0, 1.0, 1.0),
+                 imu_rate_hz: float = 200.0, tracker_rate_hz: float = 50.0,
                  incl_rate_hz: float = 10.0, cam_rate_hz: float = 10.0, incl_average_s: float = 0.02,
                  gyro_bias_rad_s: float = 2e-3, gyro_gm_sigma_rad_s: float = 2e-4, accel_bias_m_s2: float = 0.02,
                  accel_gm_sigma_m_s2: float = 2e-3, bias_tau_s: float = 300.0,
@@ -148,10 +156,11 @@ class TrackerScenario:
         self.p0_W = np.array([30.0, 0.0, 0.0]) + rng_motion.uniform(-0.3, 0.3, 3)
         self.euler0 = rng_motion.uniform(-2.0, 2.0, 3) * DEG
         k = 3
-        self.steer_pos = _Sines(rng_motion.uniform(0.002, 0.01, (k, 3)) * np.array([0.0, 1.0, 1.0]),
-                                rng_motion.uniform(120.0, 900.0, (k, 3)), rng_motion.uniform(0, 2 * np.pi, (k, 3)))
-        self.steer_att = _Sines(rng_motion.uniform(0.05, 0.3, (k, 3)) * DEG, rng_motion.uniform(60.0, 600.0, (k, 3)),
+        self.steer_pos = _Sines(rng_motion.uniform(*steer_position_m, (k, 3)) * np.asarray(steer_position_axes),
+                                rng_motion.uniform(*steer_position_period_s, (k, 3)),
                                 rng_motion.uniform(0, 2 * np.pi, (k, 3)))
+        self.steer_att = _Sines(rng_motion.uniform(*steer_angle_deg, (k, 3)) * DEG,
+                                rng_motion.uniform(*steer_period_s, (k, 3)), rng_motion.uniform(0, 2 * np.pi, (k, 3)))
         self.bursts = self._schedule_bursts(rng_burst, burst_rate_per_min, burst_accel_m_s2, burst_angle_deg)
         self._burst_starts = np.array([b.start_s for b in self.bursts])
         self._max_burst_s = max([b.duration_s for b in self.bursts], default=0.0)
@@ -394,7 +403,7 @@ class TrackerScenario:
                          "velocity_sigma_m_s": self.tracker_velocity_sigma_m_s,
                          "lever_arm_prism_m": self.r_P_B.tolist(), "tracker_W_m": [0.0, 0.0, 0.0]},
             "incl0": {"sensor_type": "inclinometer", "rate_hz": self.rates["incl0"], "sigma_rad": self.incl_sigma_rad,
-                      "T_B_I": "identity"},
+                      "averaging_s": self.incl_average_s, "T_B_I": "identity"},
             "cam0": {"sensor_type": "beam_spot_camera", "rate_hz": self.rates["cam0"], "sigma_px": self.cam_sigma_px,
                      "camera_matrix": self.camera_matrix.tolist(), "dist_coeffs": self.dist_coeffs.tolist(),
                      "R_B_C": self.R_B_C.tolist(), "lever_arm_camera_m": self.r_C_B.tolist()},

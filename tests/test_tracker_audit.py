@@ -1,0 +1,219 @@
+"""Tracker audit (selfcal.audit.tracker_system): its calibrated factors, and hidden effects it must name.
+
+Hidden-effect tests: a short calibration run (20 s, tilt steered by 1-2 deg over 20-40 s, vibration bursts) is
+simulated with ONE effect the audit is not told about; the audit must accept that effect first, accept nothing
+else, and report its size within 3 of its own sigmas (per component).  The null run must give no finding.
+"""
+import json
+
+import gtsam
+import numpy as np
+import pytest
+from scipy import stats
+
+from selfcal.audit.engine import run_audit
+from selfcal.cli import main
+from selfcal.audit.tracker_system import TrackerAudit
+from selfcal.factors import tracker as ft
+from selfcal.models import tracker as mt
+from selfcal.pipelines.tracker import estimator_for_audit
+from selfcal.sim.tracker import TrackerScenario
+from factor_checks import assert_factor_jacobians
+
+X, V = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V
+L, O, D, S, A = (gtsam.symbol(c, 0) for c in "LODSA")
+
+
+def random_pose(rng):
+    return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.05, 3)), np.array([30.0, 0.0, 0.0]) + rng.normal(0, 0.5, 3))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_calibrated_factor_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    unit = gtsam.noiseModel.Unit.Create
+    z, v = rng.normal(0, 0.01, (4, 3)) + [30.0, 0.0, 0.0], rng.normal(0, 0.05, (4, 3))
+    f = ft.calibrated_prism_factor(unit(12), X(0), z, [0.12, -0.05, 0.25], v, L, O, start_velocity_key=V(1),
+                                   lead_s=rng.uniform(0, 0.2, 4), v_start=rng.normal(0, 0.05, 3))
+    assert_factor_jacobians(f, {X(0): random_pose(rng), L: rng.normal(0, 0.02, 3), O: rng.normal(0, 0.02, 1),
+                                V(1): rng.normal(0, 0.05, 3)})
+    f = ft.calibrated_prism_velocity_factor(unit(3), X(0), V(0), rng.normal(0, 0.01, 3), rng.normal(0, 0.3, 3),
+                                            [0.12, -0.05, 0.25], rng.normal(0, 0.2, 3), O)
+    assert_factor_jacobians(f, {X(0): random_pose(rng), V(0): rng.normal(0, 0.01, 3), O: rng.normal(0, 0.02, 1)})
+    f = ft.calibrated_inclinometer_factor(unit(2), X(0), rng.normal(0, 0.03, 2), rng.normal(0, 0.003, 2),
+                                          {"bias": D, "scale": S, "accel_sensitivity": A}, {})
+    assert_factor_jacobians(f, {X(0): random_pose(rng), D: rng.normal(0, 1e-3, 2), S: rng.normal(0, 0.02, 1),
+                                A: rng.normal(0, 0.3, 1)}, atol=1e-5)
+
+
+def test_calibrated_factors_vanish_on_exact_data():
+    """The models are the simulator's: at the true pose and the true effects the errors are zero."""
+    sc = TrackerScenario(duration_s=5.0, seed=2, incl_bias_rad=(3e-4, -2e-4), incl_scale=0.01,
+                         incl_accel_sensitivity=0.2, burst_rate_per_min=60.0)
+    rec = sc.measurements(None)
+    inc = rec.sensors["incl0"]
+    t = (inc.t_ns - sc.t0_ns) * 1e-9
+    R, p, *_ = sc.kinematics(t)
+    rate, n_avg = sc.rates["imu0"], int(round(sc.incl_average_s * sc.rates["imu0"]))
+    errors = []
+    for i in range(len(t)):
+        # the disturbance a perfect specific-force inclinometer reads: exact specific force, same averaging
+        _, f = sc._imu_exact(t[i] - np.arange(1, n_avg + 1)[::-1] / rate)
+        d = np.array(mt.tilt_from_specific_force(f.mean(axis=0))) - mt.tilt_of_rotation(R[i])
+        values = gtsam.Values()
+        values.insert(X(0), gtsam.Pose3(gtsam.Rot3(R[i]), p[i]))
+        fac = ft.calibrated_inclinometer_factor(gtsam.noiseModel.Unit.Create(2), X(0),
+                                                [inc.values["roll"][i], inc.values["pitch"][i]], d, {},
+                                                {"bias": sc.incl_bias_rad, "scale": sc.incl_scale,
+                                                 "accel_sensitivity": sc.incl_accel_sensitivity})
+        errors.append(fac.unwhitenedError(values))
+    np.testing.assert_allclose(errors, 0.0, atol=1e-12)
+    sc = TrackerScenario(duration_s=2.0, seed=2, tracker_clock_offset_s=0.02, steer_position_m=(0.05, 0.1),
+                         steer_position_period_s=(4.0, 8.0))
+    tr = sc.measurements(None).sensors["tracker0"]
+    t = (tr.t_ns - sc.t0_ns) * 1e-9
+    R, p, v, a, w, _ = sc.kinematics(t)
+    z = np.column_stack([tr.values[c] for c in "xyz"])
+    for i in range(0, len(t), 7):
+        values = gtsam.Values()
+        values.insert(X(0), gtsam.Pose3(gtsam.Rot3(R[i]), p[i]))
+        fac = ft.calibrated_prism_factor(gtsam.noiseModel.Unit.Create(3), X(0), z[i], sc.r_P_B,
+                                         mt.prism_velocity_W(R[i], v[i], w[i], sc.r_P_B), offset_fixed=0.02)
+        # first order in dt: the neglected 0.5 a dt^2 (a < 0.3 m/s^2) is below 1e-4 m
+        np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-4)
+        values.insert(V(0), v[i])
+        zv = np.array([tr.values[c][i] for c in ("vx", "vy", "vz")])
+        fac = ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Unit.Create(3), X(0), V(0), zv, w[i], sc.r_P_B,
+                                                  a[i], offset_fixed=0.02)
+        # neglected: 0.5 jerk dt^2 and the rotation rate's change over dt times the lever arm (< 1e-4 m/s)
+        np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-4)
+
+
+def test_monte_carlo_scatter_of_inclinometer_effects_matches_reported_sigma():
+    """Bias, scale and sensitivity estimated from noisy readings at 30 known attitudes: scatter over 120 runs
+    against GTSAM's marginal sigmas (variance ratio within its 99.8 % chi-square bounds)."""
+    rng = np.random.default_rng(5)
+    runs, sigma = 120, 8.7e-5
+    truth = {"bias": np.array([2e-4, -1e-4]), "scale": 0.01, "accel_sensitivity": 0.2}
+    poses = [gtsam.Rot3.Ypr(*rng.uniform(-0.05, 0.05, 3)) for _ in range(30)]
+    dist = rng.normal(0, 2e-3, (30, 2))
+    exact = [mt.inclinometer_reading(R.matrix(), d, truth["bias"], truth["scale"], truth["accel_sensitivity"])
+             for R, d in zip(poses, dist)]
+    err, sig = [], []
+    for _ in range(runs):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for j, (R, d, z) in enumerate(zip(poses, dist, exact)):
+            graph.add(gtsam.PriorFactorPose3(X(j), gtsam.Pose3(R, np.zeros(3)),
+                                             gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
+            graph.add(ft.calibrated_inclinometer_factor(gtsam.noiseModel.Isotropic.Sigma(2, sigma), X(j),
+                                                        z + rng.normal(0, sigma, 2), d,
+                                                        {"bias": D, "scale": S, "accel_sensitivity": A}, {}))
+            values.insert(X(j), gtsam.Pose3(R, np.zeros(3)))
+        for key, dim in ((D, 2), (S, 1), (A, 1)):
+            values.insert(key, np.zeros(dim))
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        marg = gtsam.Marginals(graph, result)
+        err.append(np.concatenate([result.atVector(D) - truth["bias"], result.atVector(S) - truth["scale"],
+                                   result.atVector(A) - truth["accel_sensitivity"]]))
+        sig.append(np.sqrt(np.concatenate([np.diag(marg.marginalCovariance(k)) for k in (D, S, A)])))
+    ratio = np.var(err, axis=0, ddof=1) / np.mean(np.square(sig), axis=0)
+    lo, hi = stats.chi2.ppf(0.001, runs - 1) / (runs - 1), stats.chi2.ppf(0.999, runs - 1) / (runs - 1)
+    assert np.all((ratio > lo) & (ratio < hi)), ratio
+
+
+def test_monte_carlo_scatter_of_prism_lever_arm_and_clock_offset_matches_reported_sigma():
+    """Lever-arm correction and clock offset from tracker position blocks and velocities at 20 known poses
+    (rotated +-0.2 rad, moving): scatter over 100 runs against the marginal sigmas (99.8 % chi-square bounds)."""
+    rng = np.random.default_rng(8)
+    runs, sigma_p, sigma_v, n = 100, 5e-4, 2e-3, 20
+    r0, dr, dt = np.array([0.12, -0.05, 0.25]), np.array([0.01, -0.02, 0.005]), 0.02
+    poses = [gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.2, 3)), rng.normal([30.0, 0, 0], 0.5)) for _ in range(n)]
+    vel, acc, w = rng.normal(0, 0.1, (n, 5, 3)), rng.normal(0, 0.3, (n, 3)), rng.normal(0, 0.05, (n, 3))
+    err, sig = [], []
+    for _ in range(runs):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for j, pose in enumerate(poses):
+            R, p = pose.rotation().matrix(), pose.translation()
+            z = p + R @ (r0 + dr) - dt * vel[j] + rng.normal(0, sigma_p, (5, 3))
+            zv = mt.prism_velocity_W(R, vel[j, -1], w[j], r0 + dr) - dt * acc[j] + rng.normal(0, sigma_v, 3)
+            graph.add(gtsam.PriorFactorPose3(X(j), pose, gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
+            graph.add(gtsam.PriorFactorVector(V(j), vel[j, -1], gtsam.noiseModel.Isotropic.Sigma(3, 1e-9)))
+            graph.add(ft.calibrated_prism_factor(gtsam.noiseModel.Isotropic.Sigma(15, sigma_p), X(j), z, r0, vel[j],
+                                                 L, O))
+            graph.add(ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Isotropic.Sigma(3, sigma_v), X(j), V(j),
+                                                          zv, w[j], r0 + dr, acc[j], O))
+            values.insert(X(j), pose)
+            values.insert(V(j), vel[j, -1])
+        values.insert(L, np.zeros(3))
+        values.insert(O, np.zeros(1))
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+        marg = gtsam.Marginals(graph, result)
+        err.append(np.concatenate([result.atVector(L) - dr, result.atVector(O) - dt]))
+        sig.append(np.sqrt(np.concatenate([np.diag(marg.marginalCovariance(k)) for k in (L, O)])))
+    ratio = np.var(err, axis=0, ddof=1) / np.mean(np.square(sig), axis=0)
+    lo, hi = stats.chi2.ppf(0.001, runs - 1) / (runs - 1), stats.chi2.ppf(0.999, runs - 1) / (runs - 1)
+    assert np.all((ratio > lo) & (ratio < hi)), ratio
+    assert np.all(np.abs(np.mean(err, axis=0)) < 4 * np.mean(sig, axis=0) / np.sqrt(runs))  # unbiased
+
+
+def _audit(**effects):
+    nominal_offset = effects.pop("nominal_lever_error_m", None)
+    sc = TrackerScenario(duration_s=20.0, seed=3, burst_rate_per_min=6.0, steer_angle_deg=(1.0, 2.0),
+                         steer_period_s=(20.0, 40.0), **effects)
+    rec = sc.measurements(seed=4)
+    if nominal_offset is not None:  # sensor.yaml states a lever arm that is wrong by nominal_offset
+        rec.sensors["tracker0"].meta["lever_arm_prism_m"] = (sc.r_P_B + nominal_offset).tolist()
+    return sc, run_audit(TrackerAudit(estimator_for_audit(rec)))
+
+
+def _assert_found(result, effect, key, truth):
+    assert [f["effect"] for f in result.findings] == [effect], [(f["effect"], f["estimate"]) for f in result.findings]
+    est, std = (np.atleast_1d(result.findings[0][k][key]) for k in ("estimate", "std"))
+    assert np.all(np.abs(est - np.asarray(truth)) <= 3 * std), (est, std, truth)
+
+
+def test_audit_finds_nothing_on_data_without_effects():
+    _, result = _audit()
+    assert result.findings == [], [(f["effect"], f["estimate"]) for f in result.findings]
+
+
+@pytest.mark.parametrize("effect, kwargs, key, truth", [
+    ("incl_bias", {"incl_bias_rad": (5e-4, -5e-4)}, "bias", [5e-4, -5e-4]),
+    ("incl_accel_sensitivity", {"incl_accel_sensitivity": 0.3}, "sensitivity", 0.3),
+])
+def test_audit_names_a_hidden_inclinometer_effect(effect, kwargs, key, truth):
+    _, result = _audit(**kwargs)
+    _assert_found(result, effect, key, truth)
+
+
+def test_cli_audit_names_a_hidden_inclinometer_scale(tmp_path):
+    """``selfcal audit REC --system tracker``: the JSON contract, and the scale error found and measured."""
+    sc = TrackerScenario(duration_s=20.0, seed=3, burst_rate_per_min=6.0, steer_angle_deg=(1.0, 2.0),
+                         steer_period_s=(20.0, 40.0), incl_scale=0.02)
+    rec = sc.write(tmp_path / "rec", seed=4)
+    out = tmp_path / "audit.json"
+    assert main(["audit", str(rec), "--system", "tracker", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["system"] == "tracker" and report["base_model"] == "smoother"
+    assert [f["effect"] for f in report["findings"]] == ["incl_scale"]
+    f = report["findings"][0]
+    assert abs(f["estimate"]["scale"] - 0.02) <= 3 * f["std"]["scale"]
+    assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]
+    assert set(report["residual_rms"]) == {"tracker0/position", "incl0/tilt", "cam0/bearing"}
+    assert main(["audit", str(rec), "--system", "tracker", "--base", "nonsense"]) == 1
+
+
+def test_audit_names_a_wrong_prism_lever_arm():
+    """sensor.yaml's lever arm is 3 cm too high; the audit must report the true one (the camera's beam elevation
+    against the inclinometer's pitch shows the height; rotation the rest, less precisely)."""
+    sc, result = _audit(nominal_lever_error_m=np.array([0.0, 0.0, 0.03]))
+    _assert_found(result, "lever_arm_prism", "r_m", sc.r_P_B)
+
+
+@pytest.mark.xfail(strict=True, reason="known gap: a 30 ms tracker clock offset is significant (F ~ 140) but the "
+                   "estimate comes out ~30 % low and the held-out tracker residual does not fall, so it is not "
+                   "accepted (see docs/tracker.md)")
+def test_audit_names_a_tracker_clock_offset():
+    sc, result = _audit(tracker_clock_offset_s=0.03, steer_position_m=(0.05, 0.1),
+                        steer_position_period_s=(4.0, 8.0), steer_position_axes=(0.0, 0.0, 1.0))
+    _assert_found(result, "tracker_time_offset", "dt_s", 0.03)
