@@ -21,6 +21,27 @@ from selfcal.models import scan as ms
 from selfcal.models import so3
 
 
+def _points_in_imu(values, p_V, R_IV, t_IV, extrinsic_key):
+    """(p_I, R_ext, eps): the clock's points in the IMU frame through the (possibly corrected) extrinsics."""
+    if extrinsic_key is None:
+        return p_V @ R_IV.T + t_IV, R_IV, None
+    eps = values.atVector(extrinsic_key)
+    R_ext = R_IV @ so3.exp(eps)
+    return p_V @ R_ext.T + t_IV, R_ext, eps
+
+
+def _extrinsic_and_radius_blocks(d_pI, R_ext, p_V, eps, extrinsic_key, radius_key) -> list:
+    """Jacobian blocks of the sphere residuals on the extrinsic error and the radius error (where present)."""
+    blocks = []
+    if extrinsic_key is not None:
+        # p_I(eps + d) = R_IV Exp(eps) Exp(J_r d) p_V + t: dp_I = -R_ext [p_V]x J_r d
+        dp = -R_ext @ so3.hat(p_V) @ so3.right_jacobian(eps)  # (k, 3, 3)
+        blocks.append(np.einsum("ni,nij->nj", d_pI, dp))
+    if radius_key is not None:
+        blocks.append(-np.ones((len(d_pI), 1)))
+    return blocks
+
+
 def sphere_surface_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m, pose_key, center_key,
                           extrinsic_key=None, radius_key=None) -> gtsam.CustomFactor:
     """Points of one clock on one sphere of nominal radius ``radius_m`` (m); ``sigmas_m`` (k,) radial 1-sigmas."""
@@ -32,23 +53,14 @@ def sphere_surface_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius
     def error(this, values, H):
         X = values.atPose3(pose_key)
         O = values.atVector(center_key)
-        R_ext = R_IV
-        if extrinsic_key is not None:
-            eps = values.atVector(extrinsic_key)
-            R_ext = R_IV @ so3.exp(eps)
-        p_I = p_V @ R_ext.T + t_IV
+        p_I, R_ext, eps = _points_in_imu(values, p_V, R_IV, t_IV, extrinsic_key)
         radius = radius_m + (values.atVector(radius_key)[0] if radius_key is not None else 0.0)
         if H is None:
             return ms.sphere_surface_residuals(X.rotation().matrix(), X.translation(), p_I, O, radius)
         e, d_pose, d_center, d_pI = ms.sphere_surface_residuals(X.rotation().matrix(), X.translation(), p_I, O,
                                                                  radius, with_jacobians=True)
         blocks = [d_pose, d_center]
-        if extrinsic_key is not None:
-            # p_I(eps + d) = R_IV Exp(eps) Exp(J_r d) p_V + t: dp_I = -R_ext [p_V]x J_r d
-            dp = -R_ext @ so3.hat(p_V) @ so3.right_jacobian(eps)  # (k, 3, 3)
-            blocks.append(np.einsum("ni,nij->nj", d_pI, dp))
-        if radius_key is not None:
-            blocks.append(-np.ones((len(e), 1)))
+        blocks += _extrinsic_and_radius_blocks(d_pI, R_ext, p_V, eps, extrinsic_key, radius_key)
         for i, J in enumerate(blocks):
             H[i] = J
         return e
@@ -139,11 +151,7 @@ def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m
         D = gtsam.Pose3.Expmap(dt * xi, H_exp)
         H_c1, H_c2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
         A = gtsam.Pose3(gtsam.Rot3(R), r).compose(D, H_c1, H_c2)
-        R_ext = R_IV
-        if extrinsic_key is not None:
-            eps = values.atVector(extrinsic_key)
-            R_ext = R_IV @ so3.exp(eps)
-        p_I = p_V @ R_ext.T + t_IV
+        p_I, R_ext, eps = _points_in_imu(values, p_V, R_IV, t_IV, extrinsic_key)
         radius = radius_m + (values.atVector(radius_key)[0] if radius_key is not None else 0.0)
         O = values.atVector(center_key)
         e, d_pose, d_center, d_pI = ms.sphere_surface_residuals(A.rotation().matrix(), A.translation(), p_I, O,
@@ -157,11 +165,7 @@ def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m
                 start += w
             if time_offset_key is not None:
                 blocks.append((d_pose @ H_c2 @ H_exp @ xi)[:, None])
-            if extrinsic_key is not None:
-                dp = -R_ext @ so3.hat(p_V) @ so3.right_jacobian(eps)
-                blocks.append(np.einsum("ni,nij->nj", d_pI, dp))
-            if radius_key is not None:
-                blocks.append(-np.ones((len(e), 1)))
+            blocks += _extrinsic_and_radius_blocks(d_pI, R_ext, p_V, eps, extrinsic_key, radius_key)
             for i, Jb in enumerate(blocks):
                 H[i] = Jb
         return e

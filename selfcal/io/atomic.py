@@ -56,6 +56,24 @@ def atomic_write_bytes(path, data: bytes) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def atomic_file(path) -> Iterator[Path]:
+    """A temporary path beside ``path`` for a writer that wants a file name (open3d, numpy); renamed onto
+    ``path`` when the block ends without error, removed otherwise.  The suffix is kept (writers choose the
+    format from it)."""
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        yield Path(tmp_name)
+        os.chmod(tmp_name, 0o666 & ~_UMASK)
+        os.replace(tmp_name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        raise
+
+
 def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
     """Write ``text`` to ``path`` atomically; see :func:`atomic_write_bytes`."""
     return atomic_write_bytes(path, text.encode(encoding))

@@ -8,17 +8,15 @@ return") are either refused or, with ``drop_nonfinite=True``, removed and counte
 """
 from __future__ import annotations
 
-import contextlib
 import gzip
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 
+from selfcal.io.atomic import atomic_file
 from selfcal.io.pointcloud_errors import PointCloudError
 
 log = logging.getLogger(__name__)
@@ -150,17 +148,9 @@ def write_point_cloud(path, cloud, binary: bool = True) -> Path:
         raise PointCloudError(f"{path}: refusing to write an empty point cloud")
     if path.suffix.lower() not in (".ply", ".pcd", ".xyz", ".pts"):
         raise PointCloudError(f"{path}: unknown point cloud format for writing (.ply, .pcd, .xyz, .pts)")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        if not o3d.io.write_point_cloud(tmp, cloud, write_ascii=not binary):
+    with atomic_file(path) as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=not binary):
             raise PointCloudError(f"{path}: open3d could not write the point cloud")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
     return path
 
 
@@ -188,15 +178,7 @@ def read_triangle_mesh(path) -> o3d.geometry.TriangleMesh:
 def write_triangle_mesh(path, mesh: o3d.geometry.TriangleMesh) -> Path:
     """Write a mesh atomically (format from the suffix)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        if not o3d.io.write_triangle_mesh(tmp, mesh):
+    with atomic_file(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
             raise PointCloudError(f"{path}: open3d could not write the mesh")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
     return path
