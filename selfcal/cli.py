@@ -245,7 +245,10 @@ def _cmd_import(args) -> None:
     print(f"wrote {path} ({', '.join(rec.sensors)})")
 
 
-def _cmd_qc(args) -> None:
+QC_EXIT_CODES = {"pass": 0, "reported": 0, "fail": 3, "incomplete": 4}  # 1 is an error, 2 a usage error
+
+
+def _cmd_qc(args) -> int:
     from selfcal.io.atomic import atomic_write_text
     from selfcal.io.pointcloud import read_point_cloud, read_triangle_mesh
     from selfcal.pipelines.qc import run_qc
@@ -272,6 +275,7 @@ def _cmd_qc(args) -> None:
                                             json.dumps(result.to_json(), indent=1, default=_plain) + "\n")
     for kind, path in written.items():
         print(f"{kind}: {path}")
+    return QC_EXIT_CODES[result.verdict]  # a CI job fails on a failed part without parsing the report
 
 
 def _cmd_fleet(args) -> None:
@@ -555,7 +559,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "estimator (default: the --replay recording)")
     p.set_defaults(run=_cmd_track)
 
-    p = verbs.add_parser("qc", help="quality control of a scan (VDI/VDE 2634-2 figures, deviation from a reference)")
+    p = verbs.add_parser("qc", help="quality control of a scan (VDI/VDE 2634-2 figures, deviation from a reference)",
+                          epilog="exit status: 0 pass (or figures only), 3 fail, 4 incomplete (a toleranced check could not be made), 1 error")
     p.add_argument("scan", help="point cloud: .ply, .pcd, .xyz (or .xyz.gz / .txt columns x y z), metres")
     p.add_argument("--reference", help="reference mesh of the object in the scan's frame (.ply, .stl, .obj, ...)")
     p.add_argument("--spec", help="QC spec YAML: tolerances and detection settings (see docs/qc.md)")
@@ -588,14 +593,14 @@ def main(argv=None) -> int:
         args = build_parser().parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-        args.run(args)
+        code = args.run(args)
     except (UsageError, *USER_ERRORS) as err:
         print(f"selfcal: error: {' '.join(str(err).split())}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("selfcal: interrupted", file=sys.stderr)
         return 130
-    return 0
+    return code or 0
 
 
 if __name__ == "__main__":

@@ -201,6 +201,21 @@ def test_cli_qc_writes_every_report(tmp_path, reference):
     assert (out / "qc.png").read_bytes()[:4] == b"\x89PNG" and "qc.png" in (out / "qc.md").read_text()
 
 
+def test_cli_qc_exit_status_follows_the_verdict(tmp_path, reference):
+    """A failed part exits 3 (a CI job stops on it) and still gets its report; an unjudged run exits 0."""
+    from selfcal.cli import main
+    import yaml
+    pts, _ = ART.scan(60_000, sigma_m=SIGMA, seed=7)
+    write_point_cloud(tmp_path / "scan.ply", pts)
+    # 1 nm flatness cannot be met by a scan with 0.2 mm noise
+    (tmp_path / "tight.yaml").write_text(yaml.safe_dump(spec_dict(sphere_spacing_m=1e-4, flatness_m=1e-9)))
+    out = tmp_path / "fail.json"
+    assert main(["qc", str(tmp_path / "scan.ply"), "--spec", str(tmp_path / "tight.yaml"), "--json", str(out)]) == 3
+    assert json.loads(out.read_text())["verdict"] == "fail"
+    assert main(["qc", str(tmp_path / "scan.ply"), "--json", str(tmp_path / "figures.json")]) == 0
+    assert json.loads((tmp_path / "figures.json").read_text())["verdict"] == "reported"
+
+
 def test_cli_qc_bad_input_is_one_line_exit_1(tmp_path, capsys):
     from selfcal.cli import main
     (tmp_path / "empty.ply").write_text("")
