@@ -1,5 +1,5 @@
-"""Ship audit (--system ship): a lever arm hidden in simulated data is named and sized; a clean voyage gives
-no finding.  The audit is not told what the simulation holds (it sees only the recording)."""
+"""Ship audit (--system ship): a lever arm or a gyro scale hidden in simulated data is named and sized; a clean
+voyage gives no finding (with every candidate of the catalog open, gyro_scale included).  The audit is not told what the simulation holds (it sees only the recording)."""
 import numpy as np
 import pytest
 from scipy import stats
@@ -28,6 +28,20 @@ def test_hidden_lever_arm_is_named_and_sized():
     # the three components against their reported sigmas: chi-square with 3 dof, 99.9 % quantile
     assert np.sum((error / sigma) ** 2) < stats.chi2.ppf(0.999, 3), (error, sigma)
     assert sigma[2] < 0.5  # the height is what roll and pitch show: determined to decimetres
+
+
+def test_hidden_gyro_scale_is_named_and_sized():
+    """A gyro reading 2 % high on x and y (roll and pitch axes) in a 90 s heave voyage: the attitude it carries
+    over-rolls the waves by 2 %, which the accelerometer's tilt shows.  z (yaw) is seen only through the waves'
+    small heading swings: its sigma stays at the prior's size, and it is checked the same way."""
+    truth = np.array([0.02, 0.02, 0.0])
+    result = audit("heave", 90.0, lever_arm_m=(0.0, 0.0, 0.0), gyro_scale=tuple(truth))
+    assert [f["effect"] for f in result["findings"]] == ["gyro_scale"], result["findings"]
+    finding = result["findings"][0]
+    error = np.array(finding["estimate"]["scale"]) - truth
+    sigma = np.array(finding["std"]["scale"])
+    assert np.all(np.abs(error) < 3 * sigma), (error, sigma)
+    assert np.all(sigma[:2] < 0.01)  # the waves size x and y to a fraction of the 2 %
 
 
 def test_clean_voyage_gives_no_finding():

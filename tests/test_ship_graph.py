@@ -31,12 +31,33 @@ def test_batch_recovers_roll_pitch_and_horizontal_bias(voyage):
     inputs, roll, pitch, bias = voyage
     est = ShipSmoother(inputs).batch()
     idx = np.searchsorted(inputs.t_s, est.t_s)
-    # the tilt factors alone (0.02 m/s^2 noise, 0.01 rad floor) give ~0.3 deg per keyframe; the gyro links 1500
+    # the tilt factors alone (0.02 m/s^2 noise over 10 samples, 0.002 rad floor) give ~0.12 deg per keyframe; the gyro links 1500
     # keyframes, so the smoothed error is far below: 0.1 deg is a loose, physics-sized bound
     assert np.degrees(np.sqrt(np.mean((est.roll - roll[idx]) ** 2))) < 0.1
     assert np.degrees(np.sqrt(np.mean((est.pitch - pitch[idx]) ** 2))) < 0.1
-    # x and y biases show in the tilt; 10 % of 30 deg/h (z, the heading axis, is only weakly observable)
-    np.testing.assert_allclose(est.gyro_bias[-1, :2], bias[:2], atol=0.1 * abs(bias[0]))
+    # x and y biases show in the tilt (z, the heading axis, only weakly): the last segment's bias within 3 sigma
+    # of its marginal.  The random walk the graph allows (1e-5 rad/s^2/sqrt(Hz), 1.7e-4 rad/s over the run) and
+    # the one-sided information at the end make that sigma ~25 % of the 30 deg/h bias
+    sigma = _last_bias_sigma(inputs)
+    assert np.all(sigma[:2] < 0.5 * abs(bias[:2]))  # the tilt does determine it
+    assert np.all(np.abs(est.gyro_bias[-1, :2] - bias[:2]) < 3.0 * sigma[:2])
+
+
+def _last_bias_sigma(inputs):
+    """Marginal sigma (rad/s) of the last bias segment in the batch graph the smoother solves."""
+    import gtsam
+    from selfcal.graphs.ship import ShipGraph, ShipGraphOptions, keyframes_from_inputs
+    from selfcal.graphs.solve import marginal_covariances, optimize
+    options = ShipGraphOptions()
+    frames = keyframes_from_inputs(inputs, options)
+    builder = ShipGraph(options, inputs.gravity_m_s2, inputs.gyro_noise_density, inputs.gyro_random_walk)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for frame in frames:
+        g, v = builder.add(frame, values if builder.k >= 0 else None, propagate=False)
+        graph.push_back(g)
+        values.insert(v)
+    key = builder.bias_key(frames[-1].t_s)
+    return np.sqrt(np.diag(marginal_covariances(graph, optimize(graph, values), [key], "bias")[key]))
 
 
 def test_online_isam2_tracks_like_the_batch(voyage):

@@ -7,11 +7,18 @@ tilt, known accelerations (speed log, yaw rate) removed, the accelerometer taken
 * ``lever_arm``: the accelerometer sits at ``r`` from the centre of rotation; the hull's angular acceleration
   and rate add ``[w_dot]x r + [w]x^2 r`` to what it measures, which tilts the measured up with the waves,
 * ``speed_log_scale``: the speed log reads ``(1 + k)`` times the true speed, so the surge and centripetal
-  accelerations removed are off by ``k`` (a tilt during accelerations and turns).
+  accelerations removed are off by ``k`` (a tilt during accelerations and turns),
+* ``gyro_scale``: the gyro reads ``(1 + s_i)`` times the true rate on axis i, so the attitude it carries between
+  keyframes over- or under-rotates the waves and the turns by ``s`` times the rotation: the accelerometer's tilt
+  disagrees with it in proportion to the roll and pitch swings (x and y, determined by the waves) and, for z,
+  only through turns made while heeled (the heading itself is never measured), so z mostly stays at its prior
+  (:func:`selfcal.factors.ship.gyro_scale_rotation_factor`).  The yaw rate's other path, the centripetal
+  acceleration ``v w_z`` removed from the tilt, is not part of this candidate (``speed_log_scale`` scales it).
 
 Residual family ``tilt`` (rad, 2 per keyframe: the world-frame horizontal part of the corrected force
-direction) with coordinates time, angular acceleration, surge acceleration and centripetal acceleration.  Folds
-split the voyage in two halves; the held-out half is solved with the constants of the other half held fixed.
+direction) with coordinates time, angular acceleration, surge acceleration, centripetal acceleration and the
+rotation since the last keyframe.  Folds split the voyage in two halves; the held-out half is solved with the
+constants of the other half held fixed.
 """
 from __future__ import annotations
 
@@ -22,16 +29,19 @@ import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.graphs import imu_pair
-from selfcal.graphs.ship import (LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY, ShipGraph,
-                                 ShipGraphOptions, ShipInputs, keyframes_from_inputs, tilt_sigma_rad)
+from selfcal.graphs.ship import (GYRO_SCALE_KEY, LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY,
+                                 ShipGraph, ShipGraphOptions, ShipInputs, keyframes_from_inputs)
 from selfcal.graphs.solve import marginal_covariances, optimize
 from selfcal.models import ship
 
 MEANINGS = {"lever_arm": "the accelerometer is displaced from the centre of rotation: the hull's angular "
                          "acceleration and rate tilt the force it measures",
             "speed_log_scale": "the speed log reads (1 + k) times the true speed: surge and centripetal "
-                               "accelerations are removed wrongly"}
-KEYS = {"lever_arm": (LEVER_ARM_KEY, 3), "speed_log_scale": (SPEED_SCALE_KEY, 1)}
+                               "accelerations are removed wrongly",
+            "gyro_scale": "the gyro reads (1 + s) times the true rate per axis: the attitude it carries over- or "
+                          "under-rotates the waves and turns, against the accelerometer's tilt"}
+KEYS = {"lever_arm": (LEVER_ARM_KEY, 3), "speed_log_scale": (SPEED_SCALE_KEY, 1), "gyro_scale": (GYRO_SCALE_KEY, 3)}
+ROTATION_COORDINATE = "rotation since last keyframe"  # rad: what a scale error multiplies
 AUDIT_KEYFRAME_S = 0.5  # coarser than smoothing: the audit refits the voyage a dozen times
 
 
@@ -51,7 +61,8 @@ class ShipAudit:
         self.has_speed = inputs.speed_m_s is not None
 
     def candidates(self) -> list[Candidate]:
-        out = [Candidate("lever_arm", self.sensor, MEANINGS["lever_arm"], "tilt", "angular acceleration")]
+        out = [Candidate("lever_arm", self.sensor, MEANINGS["lever_arm"], "tilt", "angular acceleration"),
+               Candidate("gyro_scale", self.sensor, MEANINGS["gyro_scale"], "tilt", ROTATION_COORDINATE)]
         if self.has_speed:
             out.append(Candidate("speed_log_scale", "speed0", MEANINGS["speed_log_scale"], "tilt",
                                  "surge acceleration"))
@@ -60,12 +71,15 @@ class ShipAudit:
     def _options(self, effects, fixed: gtsam.Values | None = None) -> ShipGraphOptions:
         names = {c.effect for c in effects}
         options = replace(self.options, estimate_lever_arm="lever_arm" in names and fixed is None,
-                          estimate_speed_scale="speed_log_scale" in names and fixed is None)
+                          estimate_speed_scale="speed_log_scale" in names and fixed is None,
+                          estimate_gyro_scale="gyro_scale" in names and fixed is None)
         if fixed is not None:  # held-out half: the constants trained on the other half, held
             if fixed.exists(LEVER_ARM_KEY):
                 options = replace(options, lever_arm_m=tuple(fixed.atVector(LEVER_ARM_KEY)))
             if fixed.exists(SPEED_SCALE_KEY):
                 options = replace(options, speed_scale=float(fixed.atVector(SPEED_SCALE_KEY)[0]))
+            if fixed.exists(GYRO_SCALE_KEY):
+                options = replace(options, gyro_scale=tuple(fixed.atVector(GYRO_SCALE_KEY)))
         return options
 
     def _frames(self, part):
@@ -109,11 +123,12 @@ class ShipAudit:
         for j, frame in enumerate(frames):
             e[j] = ship.level_residual(values.atRot3(R_KEY(j)).matrix(), frame.accel_m_s2, frame.A_S, r,
                                        frame.a_known_S, k)[0]
-            sigma[j] = tilt_sigma_rad(frame.accel_m_s2 - frame.a_known_S, self.inputs.gravity_m_s2, options)
+            sigma[j] = frame.tilt_sigma_rad
         coords = {"time_s": np.array([f.t_s for f in frames]),
                   "angular acceleration": np.array([np.linalg.norm(f.A_S) for f in frames]),
                   "surge acceleration": np.array([f.a_known_S[0] for f in frames]),
-                  "centripetal acceleration": np.array([f.a_known_S[1] for f in frames])}
+                  "centripetal acceleration": np.array([f.a_known_S[1] for f in frames]),
+                  ROTATION_COORDINATE: np.array([np.linalg.norm(f.gyro_rad_s.T @ f.dt_s) for f in frames])}
         return [ResidualFamily(self.sensor, "tilt", "rad", e / sigma[:, None], e, coords)]
 
     def residual_correlation(self, fit: Fit) -> float:
@@ -129,6 +144,8 @@ class ShipAudit:
         value = fit.values.atVector(key)
         if key == LEVER_ARM_KEY:
             return {"r_m": value.tolist()}, {"r_m": sigma.tolist()}
+        if key == GYRO_SCALE_KEY:  # the graph's s is the contract's scale: raw = (1 + s) x true
+            return {"scale": value.tolist()}, {"scale": sigma.tolist()}
         # the graph's k corrects the log's acceleration (true = (1 + k) logged); the log reads 1 / (1 + k) - 1 high
         correction = 1.0 + float(value[0])
         return {"scale": 1.0 / correction - 1.0}, {"scale": float(sigma[0]) / correction**2}

@@ -1,8 +1,12 @@
-"""Ship tilt factor: the hull's up against the accelerometer's total force, corrected for the lever arm and the
-known hull acceleration (:func:`selfcal.models.ship.level_residual`).
+"""Ship factors.
 
-GTSAM's ``AttitudeFactorRot3`` measures the same direction but cannot take the accelerometer's lever arm or the
-speed log's scale as unknowns; this factor can, and without them it is the same measurement.
+* Tilt: the hull's up against the accelerometer's total force, corrected for the lever arm and the known hull
+  acceleration (:func:`selfcal.models.ship.level_residual`).  GTSAM's ``AttitudeFactorRot3`` measures the same
+  direction but cannot take the accelerometer's lever arm or the speed log's scale as unknowns; this factor can,
+  and without them it is the same measurement.
+* Gyro with a scale error: GTSAM's ``AHRSFactor`` between two keyframes' attitudes and the gyro bias, plus the
+  gyro's per-axis scale error as a Vector3 unknown (:func:`selfcal.models.ship.scaled_gyro_rotation_residual`);
+  at scale 0 it is the AHRSFactor's error.
 """
 from __future__ import annotations
 
@@ -34,3 +38,23 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: in
         return e
 
     return gtsam.CustomFactor(noise, keys, error)
+
+
+def gyro_scale_rotation_factor(noise, rotation_i_key: int, rotation_j_key: int, bias_key: int, scale_key: int,
+                               gyro_rad_s, dt_s, bias_hat_rad_s) -> gtsam.CustomFactor:
+    """Gyro samples between keyframes i and j (Rot3 R_W_S each) with the bias (Vector3, rad/s) and the gyro's
+    scale error ``s`` (Vector3, raw = (1 + s) x true).  ``noise``: the preintegrated rotation's (GTSAM's
+    ``PreintegratedAhrsMeasurements.preintMeasCov()`` of the same samples, as the AHRSFactor uses)."""
+    bias_hat = np.asarray(bias_hat_rad_s, dtype=float)
+    delta_R, J_bias, J_correction = ship.scaled_gyro_preintegration(gyro_rad_s, dt_s, bias_hat)
+
+    def error(this, values, H):
+        e, *jacobians = ship.scaled_gyro_rotation_residual(
+            values.atRot3(rotation_i_key).matrix(), values.atRot3(rotation_j_key).matrix(), delta_R, J_bias,
+            J_correction, bias_hat, values.atVector(bias_key), values.atVector(scale_key))
+        if H is not None:
+            for slot, jacobian in enumerate(jacobians):
+                H[slot] = jacobian
+        return e
+
+    return gtsam.CustomFactor(noise, [rotation_i_key, rotation_j_key, bias_key, scale_key], error)

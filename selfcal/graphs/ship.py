@@ -3,11 +3,14 @@
 Variables: ``R_k`` (Rot3, body -> local level) at keyframes every ``keyframe_s``, gyro bias ``b_j`` (Vector3)
 per bias segment of ``bias_segment_s``.  Factors, all GTSAM's own:
 
-* ``AHRSFactor(R_k, R_k+1, b_j)``: gyro preintegrated between keyframes (``PreintegratedAhrsMeasurements``),
+* ``AHRSFactor(R_k, R_k+1, b_j)``: gyro preintegrated between keyframes (``PreintegratedAhrsMeasurements``);
+  with ``estimate_gyro_scale`` instead :func:`selfcal.factors.ship.gyro_scale_rotation_factor`, the same error
+  with the gyro's per-axis scale error ``s`` (Vector3, raw = (1 + s) true) as an unknown,
 * tilt factor on ``R_k`` (:func:`selfcal.factors.ship.tilt_factor`): the up direction measured by the
-  accelerometer (total force, known accelerations removed) against the world's up, with a sigma that grows with
-  the disturbance the accelerometer itself shows (|f| departing from g: heave, surge, vibration), so a rough sea
-  weighs the tilt less instead of biasing it; optionally with the accelerometer's lever arm ``l`` (Vector3, m)
+  accelerometer (total force averaged over 0.2 s, known accelerations removed) against the
+  world's up, with a sigma from the noise the accelerometer itself shows across the force (white noise,
+  vibration: measured, then divided by the samples averaged), a floor of unmodelled slow accelerations and the
+  known acceleration's relative error.  Heave changes only |f| and does not weigh the tilt down; optionally with the accelerometer's lever arm ``l`` (Vector3, m)
   as an unknown — an accelerometer high on a mast sees the roll's angular acceleration as a tilt, which a
   smoother averages out but a filter cannot — and the speed log's scale error ``k`` (Vector1),
 * ``BetweenFactorVector(b_j, b_j+1)``: bias random walk, and priors fixing the first attitude (yaw is a gauge:
@@ -20,14 +23,16 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_filter
 
-from selfcal.factors.ship import tilt_factor
+from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
 from selfcal.graphs.solve import optimize
 from selfcal.models import imu, ship
 
 R_KEY, B_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B
 LEVER_ARM_KEY, SPEED_SCALE_KEY = gtsam.symbol("l", 0), gtsam.symbol("k", 0)
+GYRO_SCALE_KEY = gtsam.symbol("g", 0)
 RELATIVE_TOLERANCE = 1e-5  # LM converges in a few iterations, then crawls along the weakly determined lever arm
 # components (horizontal ones, in a sea without turns) at a relative gain of ~1e-6 per iteration: attitudes then
 # change by nanoradians, and an hour's graph would spend twenty minutes on it
@@ -51,8 +56,13 @@ class ShipInputs:
 class ShipGraphOptions:
     keyframe_s: float = 0.2
     bias_segment_s: float = 10.0
-    tilt_sigma_rad: float = 0.01  # floor: accelerometer noise and unmodelled small accelerations
-    disturbance_gain: float = 3.0  # tilt sigma grows by this times ||f| - g| / g
+    tilt_floor_rad: float = 0.002  # unmodelled slow horizontal accelerations (wave sway ~0.02 m/s^2) and
+    # accelerometer bias instability, which no averaging removes
+    known_acceleration_relative_sigma: float = 0.05  # the speed log's scale and rate are good to a few %
+    unknown_acceleration_gain: float = 3.0  # without a speed source: sigma grows by this times ||f| - g| / g
+    noise_window_s: float = 1.0  # the accelerometer's noise (and vibration) level is measured over this window
+    tilt_average_s: float = 0.2  # the force is averaged over this centred window: the noise falls by its sample
+    # count, and a roll of period T is attenuated by only (pi w / T)^2 / 6 (0.26 % at w = 0.2 s, T = 5 s)
     remove_known_acceleration: bool = True
     initial_bias_sigma_rad_s: float = 0.1  # uncalibrated MEMS gyros start degrees per second off
     estimate_lever_arm: bool = True
@@ -62,6 +72,9 @@ class ShipGraphOptions:
     speed_scale: float = 0.0  # known speed-log scale error (used when not estimated)
     speed_scale_prior_sigma: float = 0.2
     angular_acceleration_window_s: float = 2.0  # Savitzky-Golay window for w_dot (centred: online, a 1 s delay)
+    estimate_gyro_scale: bool = False  # the gyro's per-axis scale error s (raw = (1 + s) x true) as an unknown
+    gyro_scale: tuple = (0.0, 0.0, 0.0)  # known gyro scale error (its prior mean when estimated)
+    gyro_scale_prior_sigma: float = 0.1  # MEMS datasheets give +-3 % (MPU-6050); real boards show 7 %
 
 
 @dataclass
@@ -74,6 +87,7 @@ class ShipEstimate:
     seconds: float = 0.0
     lever_arm_m: np.ndarray | None = None  # estimated (final value), when in the graph
     speed_scale: float | None = None
+    gyro_scale: np.ndarray | None = None
 
 
 def known_acceleration(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
@@ -101,13 +115,26 @@ def smooth_derivative(t_s: np.ndarray, x: np.ndarray, window_s: float) -> np.nda
     return savgol_filter(x, n, SAVGOL_ORDER, deriv=1, delta=1.0 / rate, axis=0)
 
 
-def tilt_sigma_rad(f: np.ndarray, g: float, options: ShipGraphOptions) -> float:
-    """The tilt measurement's sigma: a floor plus the disturbance |f| - g the accelerometer itself shows."""
-    return options.tilt_sigma_rad + options.disturbance_gain * abs(np.linalg.norm(f) - g) / g
+def tilt_sigma_rad(noise_var_m2_s4: float, n_average: int, a_known_S: np.ndarray | None, f_S: np.ndarray, g: float,
+                   options: ShipGraphOptions) -> float:
+    """The sigma (rad, per axis) of one keyframe's tilt.
+
+    Terms: the measured noise across the force averaged over ``n_average`` samples; the floor of unmodelled
+    slow accelerations; and the hull's acceleration.  With a speed source (``a_known_S`` given) the hull's
+    horizontal acceleration is modelled and only its relative error enters: ``|f| - g`` is then heave, which
+    does not tilt the force (the patent's point) and must not weigh it down.  Without one (``a_known_S`` None),
+    ``|f| - g`` is the only evidence of surge and turns, and the sigma grows with it.
+    """
+    if a_known_S is not None:
+        hull = options.known_acceleration_relative_sigma * np.linalg.norm(a_known_S)
+    else:
+        hull = options.unknown_acceleration_gain * abs(np.linalg.norm(f_S) - g)
+    return float(np.sqrt(noise_var_m2_s4 / max(n_average, 1) / g**2 + options.tilt_floor_rad**2 + (hull / g) ** 2))
 
 
-def tilt_noise(f: np.ndarray, g: float, options: ShipGraphOptions):
-    return gtsam.noiseModel.Isotropic.Sigma(2, tilt_sigma_rad(f, g, options))
+def samples_per_keyframe(rate_hz: float, options: ShipGraphOptions) -> tuple[int, int]:
+    """(samples averaged into one tilt, samples over which the noise is measured) at ``rate_hz``."""
+    return max(1, int(round(options.tilt_average_s * rate_hz))), max(2, int(round(options.noise_window_s * rate_hz)))
 
 
 @dataclass
@@ -117,10 +144,11 @@ class Keyframe:
     t_s: float
     gyro_rad_s: np.ndarray  # (n, 3) samples from the previous keyframe up to this one (empty for the first)
     dt_s: np.ndarray  # (n,)
-    accel_m_s2: np.ndarray  # (3,) specific force measured at t_s
+    accel_m_s2: np.ndarray  # (3,) specific force averaged over ``tilt_average_s``, centred on t_s
     A_S: np.ndarray  # (3, 3) lever-arm matrix [w_dot]x + [w]x^2 at t_s
     a_known_S: np.ndarray  # (3,) hull acceleration known from the speed log and the yaw rate
     has_speed: bool = False
+    tilt_sigma_rad: float = 0.01  # per axis (:func:`tilt_sigma_rad`)
 
 
 def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
@@ -131,11 +159,19 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     A = imu.lever_arm_jacobian(inputs.gyro_rad_s, smooth_derivative(t, inputs.gyro_rad_s,
                                                                      options.angular_acceleration_window_s))
     dt = np.diff(t)
+    n_average, n_noise = samples_per_keyframe(1.0 / np.median(dt), options)
+    f_mean, noise_var = ship.averaged_specific_force(inputs.accel_m_s2, n_average, n_noise)
+    # what is subtracted from the averaged force is averaged the same way (the residual is linear in them)
+    A = uniform_filter1d(A, size=n_average, axis=0, mode="nearest")
+    a_known = uniform_filter1d(a_known, size=n_average, axis=0, mode="nearest")
     frames, previous = [], None
     for i in index:
         span = slice(previous, i) if previous is not None else slice(0, 0)
-        frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], inputs.accel_m_s2[i], A[i],
-                               a_known[i], inputs.speed_m_s is not None and options.remove_known_acceleration))
+        has_speed = inputs.speed_m_s is not None and options.remove_known_acceleration
+        sigma = tilt_sigma_rad(noise_var[i], n_average, a_known[i] if has_speed else None, f_mean[i],
+                               inputs.gravity_m_s2, options)
+        frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], f_mean[i], A[i], a_known[i],
+                               has_speed, sigma))
         previous = i
     return frames
 
@@ -169,9 +205,8 @@ class ShipGraph:
         k = self.k
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         speed_scale = options.estimate_speed_scale and frame.has_speed
-        f_corrected = frame.accel_m_s2 - frame.a_known_S
         a_known = frame.a_known_S if speed_scale else (1.0 + options.speed_scale) * frame.a_known_S
-        graph.add(tilt_factor(tilt_noise(f_corrected, self.gravity_m_s2, options), R_KEY(k), frame.accel_m_s2,
+        graph.add(tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), R_KEY(k), frame.accel_m_s2,
                               frame.A_S, a_known, LEVER_ARM_KEY if options.estimate_lever_arm else None,
                               SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m))
         if k == 0:
@@ -185,6 +220,11 @@ class ShipGraph:
                 graph.add(gtsam.PriorFactorVector(SPEED_SCALE_KEY, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(
                     1, options.speed_scale_prior_sigma)))
                 values.insert(SPEED_SCALE_KEY, np.zeros(1))
+            if options.estimate_gyro_scale:
+                scale_prior = np.asarray(options.gyro_scale, dtype=float)
+                graph.add(gtsam.PriorFactorVector(GYRO_SCALE_KEY, scale_prior, gtsam.noiseModel.Isotropic.Sigma(
+                    3, options.gyro_scale_prior_sigma)))
+                values.insert(GYRO_SCALE_KEY, scale_prior)
             start = self.tilt_start(frame)
             graph.add(gtsam.PriorFactorRot3(R_KEY(0), start, gtsam.noiseModel.Diagonal.Sigmas(np.array([0.2, 0.2, 1e-3]))))
             graph.add(gtsam.PriorFactorVector(self.bias_key(frame.t_s), np.zeros(3),
@@ -195,10 +235,19 @@ class ShipGraph:
         previous_bias, bias = self.bias_key(self.previous_t_s), self.bias_key(frame.t_s)
         self.previous_t_s = frame.t_s
         bias_hat = estimate.atVector(previous_bias) if estimate is not None else np.zeros(3)
+        gyro_rad_s = frame.gyro_rad_s
+        if not options.estimate_gyro_scale and any(options.gyro_scale):  # a known scale error: true = raw / (1 + s)
+            # (the bias estimated is then the raw bias / (1 + s): the same constant, in true-rate units)
+            gyro_rad_s = gyro_rad_s / (1.0 + np.asarray(options.gyro_scale, dtype=float))
         pim = gtsam.PreintegratedAhrsMeasurements(self.params, bias_hat)
-        for w, dt in zip(frame.gyro_rad_s, frame.dt_s):
+        for w, dt in zip(gyro_rad_s, frame.dt_s):
             pim.integrateMeasurement(w, float(dt))
-        graph.add(gtsam.AHRSFactor(R_KEY(k - 1), R_KEY(k), previous_bias, pim))
+        if options.estimate_gyro_scale:  # the AHRSFactor's error and noise, plus the scale (GTSAM's takes none)
+            graph.add(gyro_scale_rotation_factor(gtsam.noiseModel.Gaussian.Covariance(pim.preintMeasCov()),
+                                                 R_KEY(k - 1), R_KEY(k), previous_bias, GYRO_SCALE_KEY,
+                                                 frame.gyro_rad_s, frame.dt_s, bias_hat))
+        else:
+            graph.add(gtsam.AHRSFactor(R_KEY(k - 1), R_KEY(k), previous_bias, pim))
         if bias != previous_bias:
             graph.add(gtsam.BetweenFactorVector(previous_bias, bias, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
                 3, self.gyro_random_walk * np.sqrt(options.bias_segment_s))))
@@ -231,7 +280,7 @@ class OnlineShip:
         k = self.graph.k
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         # the constants and the current bias are re-stamped every keyframe so the window never drops them
-        for key in (R_KEY(k), self.graph.bias_key(frame.t_s), LEVER_ARM_KEY, SPEED_SCALE_KEY):
+        for key in (R_KEY(k), self.graph.bias_key(frame.t_s), LEVER_ARM_KEY, SPEED_SCALE_KEY, GYRO_SCALE_KEY):
             if v.exists(key) or self.estimate.exists(key):
                 stamps.insert((key, frame.t_s))
         self.smoother.update(g, v, stamps)
@@ -288,4 +337,5 @@ class ShipSmoother:
 
 def _constants(values) -> tuple:
     return (values.atVector(LEVER_ARM_KEY) if values.exists(LEVER_ARM_KEY) else None,
-            float(values.atVector(SPEED_SCALE_KEY)[0]) if values.exists(SPEED_SCALE_KEY) else None)
+            float(values.atVector(SPEED_SCALE_KEY)[0]) if values.exists(SPEED_SCALE_KEY) else None,
+            values.atVector(GYRO_SCALE_KEY) if values.exists(GYRO_SCALE_KEY) else None)

@@ -8,10 +8,14 @@ At rest the accelerometer measures ``f_S = R_W_S^T (0, 0, g)``, which gives
 Heave changes only |f| and leaves both angles alone (the patent's point).  Known accelerations of the hull,
 in the body frame for a level ship: surge ``dv/dt`` along x, centripetal ``v * yaw_rate`` along y (towards the
 centre of a turn; left turns have yaw_rate > 0); they are subtracted from f before the tilt is taken.
+A gyro that reads ``(1 + s)`` times the true rate per axis over- or under-rotates the attitude it carries
+between keyframes: :func:`scaled_gyro_preintegration` and :func:`scaled_gyro_rotation_residual`.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from selfcal.models import so3
 
 
 def tilt_from_specific_force(f_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,3 +60,112 @@ def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: n
     H_r = -P_R @ du_df @ A_S
     H_k = -(P_R @ du_df @ a_known_S).reshape(2, 1)
     return e, H_R, H_r, H_k
+
+
+# --- gyro scale error on the rotation preintegrated between keyframes ---------------------------------------------
+
+def gyro_scale_correction(gyro_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rate correction ``c = s / (1 + s)`` per axis of a gyro that reads ``(1 + s)`` times the true rate, and
+    ``dc/ds = 1 / (1 + s)^2`` (diagonal, (3,)): ``w = (1 - c) (w_raw - b)`` is the true rate, exactly."""
+    s = np.asarray(gyro_scale, dtype=float)
+    return s / (1.0 + s), 1.0 / (1.0 + s) ** 2
+
+
+def scaled_gyro_preintegration(gyro_rad_s: np.ndarray, dt_s: np.ndarray, bias_hat_rad_s: np.ndarray):
+    """Rotation preintegrated from raw gyro samples, with its first-order sensitivity to the bias and the scale.
+
+    Sensor model, per axis i of the body frame S (x forward, y left, z up): ``w_raw_i = (1 + s_i) w_i + b_i``
+    (+ noise), ``w`` the true body rate (rad/s), ``s`` the dimensionless scale error (0 = nominal, the audit's
+    ``scale``), ``b`` the bias (rad/s).  Written with the correction ``c_i = s_i / (1 + s_i)``
+    (:func:`gyro_scale_correction`) the true rate is *linear* in it: ``w = (1 - c) (w_raw - b)``.  The rotation
+    body(k) <- body(k+1) held over the samples (zero-order hold, as GTSAM's ``PreintegratedRotation``)::
+
+        dR(b, c) = prod_n Exp((1 - c) (w_n - b) dt_n)
+                 ~ dR_meas Exp(J_b (b - b_hat) + J_c c)          (first order in b - b_hat and c)
+
+    ``dR_meas = prod_n Exp(u_n dt_n)``, ``u_n = w_n - b_hat``.  Both Jacobians accumulate along the samples like
+    GTSAM's bias Jacobian ``delRdelBiasOmega`` (Forster et al. 2017, eq. 44), with the rate's own derivative
+    ``dw/db = -I`` and ``dw/dc = -diag(u_n)``::
+
+        J <- Exp(u_n dt_n)^T J + Jr(u_n dt_n) (dw/d.) dt_n
+
+    (here summed in closed form by :func:`selfcal.models.so3.integrate_rates`).  For rotation about one fixed
+    axis the first-order form is exact in ``c`` (all the Exp's commute), whatever the angle; the remainder is of
+    order ``c |theta|^2`` times the non-commuting part of the motion between two keyframes.
+
+    Parameters
+    ----------
+    gyro_rad_s : (N, 3) raw gyro samples since the previous keyframe, rad/s.
+    dt_s : (N,) how long each sample is held, s.
+    bias_hat_rad_s : (3,) bias the samples are preintegrated about, rad/s.
+
+    Returns
+    -------
+    delta_R : (3, 3) ``dR_meas``.
+    J_bias : (3, 3) ``J_b``, rad per rad/s.
+    J_correction : (3, 3) ``J_c``, rad per unit of c.
+    """
+    u = np.asarray(gyro_rad_s, dtype=float).reshape(-1, 3) - np.asarray(bias_hat_rad_s, dtype=float)
+    delta_R, J = so3.integrate_rates(u, np.asarray(dt_s, dtype=float).reshape(-1), with_jacobians=True)
+    # J[n] d moves sample n's rate by d: bias moves every rate by -db, the correction rate n by -diag(u_n) dc
+    return delta_R, -J.sum(axis=0), -np.einsum("nij,nj->ij", J, u)
+
+
+def scaled_gyro_rotation_residual(R_W_Si: np.ndarray, R_W_Sj: np.ndarray, delta_R: np.ndarray, J_bias: np.ndarray,
+                                  J_correction: np.ndarray, bias_hat_rad_s: np.ndarray, bias_rad_s: np.ndarray,
+                                  gyro_scale: np.ndarray):
+    """GTSAM's AHRSFactor residual with a gyro scale error: ``e = Log(R_W_Sj^T R_W_Si dR(b, s))`` (rad, 3).
+
+    The attitude the gyro carries from keyframe i, ``R_W_Si dR(b, s)``, against keyframe j's, in j's tangent
+    space (GTSAM 4.3: ``Rj.localCoordinates(predicted_Rj)``).  ``dR(b, s) = delta_R Exp(phi)``,
+    ``phi = J_bias (b - b_hat) + J_correction c(s)`` (:func:`scaled_gyro_preintegration`,
+    :func:`gyro_scale_correction`); with ``s = 0`` it is the AHRSFactor's error (no Coriolis term: a ship's
+    rates dwarf the earth's).  Attitudes ``R_W_S`` map body to local level.
+
+    Returns ``e`` and its Jacobians on right perturbations ``R Exp(xi)`` of ``R_W_Si`` and ``R_W_Sj`` (3x3 each),
+    on ``b`` (3x3, rad per rad/s) and on ``s`` (3x3); with ``E = Exp(e)``::
+
+        de/dxi_i = Jr^-1(e) dR(b, s)^T,   de/dxi_j = -Jr^-1(e) E^T,
+        de/dphi = Jr^-1(e) Jr(phi),   de/db = de/dphi J_bias,   de/ds = de/dphi J_correction diag(1 / (1 + s)^2).
+    """
+    c, dc_ds = gyro_scale_correction(gyro_scale)
+    phi = J_bias @ (np.asarray(bias_rad_s, dtype=float) - bias_hat_rad_s) + J_correction @ c
+    predicted = delta_R @ so3.exp(phi)
+    E = R_W_Sj.T @ R_W_Si @ predicted
+    e = so3.log(E)
+    Jr_inv = np.linalg.inv(so3.right_jacobian(e))
+    H_phi = Jr_inv @ so3.right_jacobian(phi)
+    return e, Jr_inv @ predicted.T, -Jr_inv @ E.T, H_phi @ J_bias, H_phi @ J_correction * dc_ds
+
+
+def averaged_specific_force(accel_m_s2: np.ndarray, n_average: int, n_noise: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tilt measurement of each sample's keyframe: the force averaged over ``n_average`` samples centred on
+    it, and the variance (m^2 s^-4, per axis) of one sample's error across the force direction.
+
+    A centred mean of a force that changes linearly (a hull rolling through the window) is its value at the
+    centre, so averaging removes the accelerometer's white noise (and any vibration) by ``n_average`` without
+    a lag.  The noise across the force direction -- the part that tilts it -- is measured from the data:
+    first differences cancel the slow motion of the hull, and a white sequence's differences have twice its
+    variance, so ``var = mean |d_perp|^2 / 4`` over ``n_noise`` samples (two axes across ``f``).  Heave and
+    every acceleration along ``f`` change only ``|f|`` and do not enter.
+
+    Parameters
+    ----------
+    accel_m_s2 : (N, 3) specific force samples on a uniform grid, m s^-2.
+    n_average, n_noise : centred window lengths in samples (clipped at the ends).
+
+    Returns
+    -------
+    f_mean : (N, 3) averaged force, m s^-2.
+    noise_var : (N,) per-axis variance of one sample across the force, m^2 s^-4.
+    """
+    from scipy.ndimage import uniform_filter1d
+    a = np.asarray(accel_m_s2, dtype=float)
+    f_mean = uniform_filter1d(a, size=max(1, n_average), axis=0, mode="nearest")
+    if len(a) < 2:
+        return f_mean, np.zeros(len(a))
+    u = f_mean / np.linalg.norm(f_mean, axis=1, keepdims=True)
+    d = np.diff(a, axis=0)
+    d_perp_sq = np.sum(d**2, axis=1) - np.sum(d * u[1:], axis=1) ** 2
+    d_perp_sq = np.concatenate([d_perp_sq[:1], d_perp_sq])
+    return f_mean, uniform_filter1d(d_perp_sq, size=max(2, n_noise), mode="nearest") / 4.0

@@ -127,7 +127,7 @@ class OnlineShipTracker:
         return outputs
 
     def _solve_keyframe(self, t_ns_now: int) -> dict:
-        from selfcal.graphs.ship import Keyframe
+        from selfcal.graphs.ship import Keyframe, samples_per_keyframe, tilt_sigma_rad
         t = np.asarray(self.t_s)
         gyro, accel = np.asarray(self.gyro), np.asarray(self.accel)
         i = int(np.searchsorted(t, self.next_keyframe_s))
@@ -135,18 +135,23 @@ class OnlineShipTracker:
         window = np.abs(t - t[i]) <= 0.5 * self.options.angular_acceleration_window_s
         w_dot = _centred_slope(t[window], gyro[window], t[i])
         A = imu.lever_arm_jacobian(gyro[i], w_dot)
+        n_average, n_noise = samples_per_keyframe(1.0 / np.median(np.diff(t)), self.options)
+        averaged = slice(max(0, i - n_average // 2), i + n_average // 2 + 1)  # the force's averaging window
         has_speed = bool(self.speed) and self.options.remove_known_acceleration
         if has_speed:
             recent = np.asarray(self.speed_t_s) >= t[i] - SPEED_RATE_WINDOW_S
             st, sv = np.asarray(self.speed_t_s)[recent], np.asarray(self.speed)[recent]
             speed = float(np.interp(t[i], st, sv)) if len(st) else self.speed[-1]
             rate = float(np.polyfit(st - st[-1], sv, 1)[0]) if len(st) >= 3 else 0.0
-            a_known = ship.known_acceleration_S(speed, rate, gyro[i, 2])
+            a_known = ship.known_acceleration_S(speed, rate, np.mean(gyro[averaged, 2]))
         else:
             a_known = np.zeros(3)
         first = self.last_keyframe_index is None
         span = slice(0, 0) if first else slice(self.last_keyframe_index, i)
-        frame = Keyframe(float(t[i]), gyro[span], np.diff(t)[span], accel[i], A, a_known, has_speed)
+        f_mean, noise_var = ship.averaged_specific_force(accel, n_average, n_noise)
+        sigma = tilt_sigma_rad(noise_var[i], n_average, a_known if has_speed else None, f_mean[i],
+                               self.graph.gravity_m_s2, self.options)
+        frame = Keyframe(float(t[i]), gyro[span], np.diff(t)[span], f_mean[i], A, a_known, has_speed, sigma)
         (roll, pitch, yaw), bias, cov = self.online.add(frame, covariance=True)
         # drop what no later keyframe needs: samples before this keyframe's derivative window
         keep = max(0, min(i, int(np.searchsorted(t, t[i] - 0.5 * self.options.angular_acceleration_window_s))))

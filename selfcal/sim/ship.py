@@ -42,7 +42,8 @@ Motion models (all continuous in time, evaluable at any t)
 
 Measurements
 ------------
-``imu0``: ``w_raw = w_S + b_g(t) [+ n_g]``, ``a_raw = f_S + b_a [+ n_a + walk_a]``.  The gyro bias ``b_g(t)``
+``imu0``: ``w_raw = (1 + s_g) w_S + b_g(t) [+ n_g]`` (per-axis gyro scale error ``s_g``, 0 by default),
+``a_raw = f_S + b_a [+ n_a + walk_a]``.  The gyro bias ``b_g(t)``
 is part of the truth (seeded by the scenario's seed): an initial bias of magnitude ``gyro_bias_deg_h`` in a
 random direction plus a random walk precomputed on the IMU grid, present in *exact* measurements too
 (``exact`` means "no white noise", not "no drift").  ``speed0``: ``speed_log [m s^-1]`` = ``speed_log_scale
@@ -325,6 +326,8 @@ class ShipScenario:
     noise : white noise densities (and accel random walk) added by ``perturbed_measurements``; its
         ``gyroscope_random_walk`` is replaced by the true bias walk in sensor.yaml and never added twice.
     speed_log_scale : true scale of the speed log (1.02 = reads 2 % high).
+    gyro_scale : (3,) per-axis gyro scale error, dimensionless: the gyro reads ``(1 + gyro_scale) w`` (0 = nominal;
+        0.02 = reads 2 % high).
     speed_log_noise_m_s, gps_speed_noise_m_s : white noise sigmas per sample (perturbed only), m/s.
     speed_log_rate_hz, gps_rate_hz : sample rates, Hz.
     roll_scale, pitch_scale, yaw_wave_scale, heave_scale : multiply the seeded amplitudes (0 switches a motion
@@ -345,12 +348,13 @@ class ShipScenario:
                  speed_log_rate_hz: float = 1.0, gps_rate_hz: float = 1.0, gps_speed_noise_m_s: float = 0.05,
                  roll_scale: float = 1.0, pitch_scale: float = 1.0, yaw_wave_scale: float = 1.0,
                  heave_scale: float = 1.0, current_m_s=(0.0, 0.0), gravity_m_s2: float = imu.STANDARD_GRAVITY_M_S2,
-                 t0_ns: int = DEFAULT_T0_NS):
+                 t0_ns: int = DEFAULT_T0_NS, gyro_scale=(0.0, 0.0, 0.0)):
         self.kind, self.duration_s, self.rate_hz, self.seed = kind, float(duration_s), float(rate_hz), seed
         self.lever_arm_m = np.asarray(lever_arm_m, dtype=float).reshape(3)
         self.gyro_bias_deg_h = float(gyro_bias_deg_h)
         self.gyro_bias_walk_deg_h_sqrt_h = float(gyro_bias_walk_deg_h_sqrt_h)
         self.accel_bias_m_s2 = np.asarray(accel_bias_m_s2, dtype=float).reshape(3)
+        self.gyro_scale = np.asarray(gyro_scale, dtype=float).reshape(3)
         self.noise = noise if noise is not None else ImuNoise()
         self.speed_log_scale, self.speed_log_noise_m_s = float(speed_log_scale), float(speed_log_noise_m_s)
         self.speed_log_rate_hz, self.gps_rate_hz = float(speed_log_rate_hz), float(gps_rate_hz)
@@ -410,6 +414,8 @@ class ShipScenario:
             effects.append("accel_bias")
         if self.speed_log_scale != 1.0:
             effects.append("speed_log_scale")
+        if np.any(self.gyro_scale):
+            effects.append("gyro_scale")
         return to_plain({
             "kind": "ship", "scenario": self.kind, "seed": self.seed, "duration_s": self.duration_s,
             "gravity_m_s2": self.gravity_m_s2, "t0_ns": self.t0_ns, "motion": self.motion.to_dict(),
@@ -421,6 +427,7 @@ class ShipScenario:
                          "gyro_bias0_deg_h": self.gyro_bias0_rad_s / DEG_H,
                          "gyro_bias_end_deg_h": self.truth_gyro_bias(grid[-1:])[0] / DEG_H,
                          "gyro_bias_walk_deg_h_sqrt_h": self.gyro_bias_walk_deg_h_sqrt_h,
+                         "gyro_scale": self.gyro_scale,
                          "accel_bias_m_s2": self.accel_bias_m_s2, "noise": self.noise.to_dict()},
                 "speed0": {"rate_hz": self.speed_log_rate_hz, "scale": self.speed_log_scale,
                            "noise_m_s": self.speed_log_noise_m_s},
@@ -440,7 +447,7 @@ class ShipScenario:
         """Sensors of the recording; with ``rng`` (4 child generators) add white noise and the accel walk."""
         t_ns, t_s = self.imu_stamps()
         w, f = self.true_imu(t_s)
-        gyro = w + self.truth_gyro_bias(t_s)
+        gyro = w * (1.0 + self.gyro_scale) + self.truth_gyro_bias(t_s)  # scale 0: w * 1.0 is w, bit for bit
         accel = f + self.accel_bias_m_s2
         log_ns, log_s = _stamps(self.duration_s, self.speed_log_rate_hz, self.t0_ns)
         gps_ns, gps_s = _stamps(self.duration_s, self.gps_rate_hz, self.t0_ns)
