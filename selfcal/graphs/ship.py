@@ -59,7 +59,7 @@ class ShipGraphOptions:
     tilt_floor_rad: float = 0.002  # unmodelled slow horizontal accelerations (wave sway ~0.02 m/s^2) and
     # accelerometer bias instability, which no averaging removes
     known_acceleration_relative_sigma: float = 0.05  # the speed log's scale and rate are good to a few %
-    unknown_acceleration_gain: float = 3.0  # without a speed source: sigma grows by this times ||f| - g| / g
+    unknown_acceleration_gain: float = 1.0  # without a speed source: sigma grows by this times ||f| - g| / g
     noise_window_s: float = 1.0  # the accelerometer's noise (and vibration) level is measured over this window
     tilt_average_s: float = 0.2  # the force is averaged over this centred window: the noise falls by its sample
     # count, and a roll of period T is attenuated by only (pi w / T)^2 / 6 (0.26 % at w = 0.2 s, T = 5 s)
@@ -123,7 +123,8 @@ def tilt_sigma_rad(noise_var_m2_s4: float, n_average: int, a_known_S: np.ndarray
     slow accelerations; and the hull's acceleration.  With a speed source (``a_known_S`` given) the hull's
     horizontal acceleration is modelled and only its relative error enters: ``|f| - g`` is then heave, which
     does not tilt the force (the patent's point) and must not weigh it down.  Without one (``a_known_S`` None),
-    ``|f| - g`` is the only evidence of surge and turns, and the sigma grows with it.
+    ``|f| - g`` is the only evidence of unmodelled motion (turns, a hand moving a board), weak as it is (a
+    horizontal ``a`` changes it by ``a^2 / 2g``), and the sigma grows with ``unknown_acceleration_gain`` times it.
     """
     if a_known_S is not None:
         hull = options.known_acceleration_relative_sigma * np.linalg.norm(a_known_S)
