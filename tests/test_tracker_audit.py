@@ -37,9 +37,21 @@ def test_calibrated_factor_jacobians(seed):
                                    lead_s=rng.uniform(0, 0.2, 4), v_start=rng.normal(0, 0.05, 3))
     assert_factor_jacobians(f, {X(0): random_pose(rng), L: rng.normal(0, 0.02, 3), O: rng.normal(0, 0.02, 1),
                                 V(1): rng.normal(0, 0.05, 3)})
+    # the offset's regressor interpolated between two velocity variables, one of them also the start velocity
+    f = ft.calibrated_prism_factor(unit(12), X(0), z, [0.12, -0.05, 0.25], rng.normal(0, 0.003, 3), L, O,
+                                   start_velocity_key=V(1), lead_s=rng.uniform(0, 0.2, 4),
+                                   v_start=rng.normal(0, 0.05, 3), velocity_keys=(V(1), V(2)),
+                                   velocity_fraction=rng.uniform(0, 1, 4))
+    assert_factor_jacobians(f, {X(0): random_pose(rng), L: rng.normal(0, 0.02, 3), O: rng.normal(0, 0.02, 1),
+                                V(1): rng.normal(0, 0.1, 3), V(2): rng.normal(0, 0.1, 3)})
     f = ft.calibrated_prism_velocity_factor(unit(3), X(0), V(0), rng.normal(0, 0.01, 3), rng.normal(0, 0.3, 3),
                                             [0.12, -0.05, 0.25], rng.normal(0, 0.2, 3), O)
     assert_factor_jacobians(f, {X(0): random_pose(rng), V(0): rng.normal(0, 0.01, 3), O: rng.normal(0, 0.02, 1)})
+    f = ft.calibrated_prism_velocity_factor(unit(3), X(0), V(0), rng.normal(0, 0.01, 3), rng.normal(0, 0.3, 3),
+                                            [0.12, -0.05, 0.25], np.zeros(3), O, previous_velocity_key=V(1),
+                                            fraction=rng.uniform(0, 1), span_s=0.2)
+    assert_factor_jacobians(f, {X(0): random_pose(rng), V(0): rng.normal(0, 0.1, 3), O: rng.normal(0, 0.02, 1),
+                                V(1): rng.normal(0, 0.1, 3)})
     f = ft.calibrated_inclinometer_factor(unit(2), X(0), rng.normal(0, 0.03, 2), rng.normal(0, 0.003, 2),
                                           {"bias": D, "scale": S, "accel_sensitivity": A}, {})
     assert_factor_jacobians(f, {X(0): random_pose(rng), D: rng.normal(0, 1e-3, 2), S: rng.normal(0, 0.02, 1),
@@ -87,6 +99,88 @@ def test_calibrated_factors_vanish_on_exact_data():
                                                   a[i], offset_fixed=0.02)
         # neglected: 0.5 jerk dt^2 and the rotation rate's change over dt times the lever arm (< 1e-4 m/s)
         np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-4)
+
+
+def test_interpolated_offset_regressors_vanish_on_exact_data():
+    """The audit's clock-offset model with the state velocity interpolated between two keyframes (the tracker
+    block and the bridge form of the velocity factor): zero error at the truth, up to the neglected terms."""
+    dt, span = 0.02, 0.2
+    sc = TrackerScenario(duration_s=2.0, seed=2, tracker_clock_offset_s=dt, steer_position_m=(0.05, 0.1),
+                         steer_position_period_s=(4.0, 8.0), burst_rate_per_min=0.0)
+    tr = sc.measurements(None).sensors["tracker0"]
+    t = (tr.t_ns - sc.t0_ns) * 1e-9
+    t0, t1 = 0.505, 0.505 + span  # keyframes on IMU stamps, between tracker stamps
+    sel = (t >= t0) & (t < t1)
+    ti, z = t[sel], np.column_stack([tr.values[c] for c in "xyz"])[sel]
+    v_raw = np.column_stack([tr.values[c] for c in ("vx", "vy", "vz")])[sel]
+    (_, R1), (_, p1), (v0, v1), _, (_, w1), _ = sc.kinematics(np.array([t0, t1]))
+    Ri, pi, vi, _, wi, _ = sc.kinematics(ti)
+    prism = lambda R, p: p + R @ sc.r_P_B  # noqa: E731
+    moved = z + prism(R1, p1) - np.array([prism(R, q) for R, q in zip(Ri, pi)])  # the IMU's move, exact
+    lead, f = t1 - ti, (ti - t0) / span
+    values = gtsam.Values()
+    values.insert(X(1), gtsam.Pose3(gtsam.Rot3(R1), p1))
+    values.insert(V(0), v0)
+    values.insert(V(1), v1)
+    fac = ft.calibrated_prism_factor(gtsam.noiseModel.Unit.Create(z.size), X(1), moved, sc.r_P_B,
+                                     np.tile(R1 @ mt.cross(w1, sc.r_P_B), (len(ti), 1)), offset_fixed=dt,
+                                     start_velocity_key=V(0), lead_s=lead, v_start=v0, velocity_keys=(V(0), V(1)),
+                                     velocity_fraction=f)
+    # neglected: 0.5 a dt^2 (a < 0.25 m/s^2: 5e-5 m), dt times the interpolation's miss of the velocity's curvature
+    # (jerk < 0.4 m/s^3: 0.4 span^2 / 8 = 2e-3 m/s, 4e-5 m) and of the lever arm's rotation velocity (< 1e-5 m)
+    np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-4)
+    # velocity: the samples' mean minus the IMU's bridge (its velocity change less the linear share), exact here
+    f_mean = float(f.mean())
+    z_bridge = v_raw.mean(axis=0) - vi.mean(axis=0) + (1 - f_mean) * v0 + f_mean * v1
+    fac = ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Unit.Create(3), X(1), V(1), z_bridge, wi.mean(axis=0),
+                                              sc.r_P_B, np.zeros(3), offset_fixed=dt, previous_velocity_key=V(0),
+                                              fraction=f_mean, span_s=span)
+    # neglected: 0.5 jerk dt^2 (8e-5 m/s), dt jerk times the samples' mean time off the interval's middle (0.01 s:
+    # 8e-5 m/s) and the lever arm's rotation velocity's change over dt (< 1e-5 m/s)
+    np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=2e-4)
+
+
+def test_monte_carlo_scatter_of_offset_with_interpolated_velocity_matches_reported_sigma():
+    """Clock offset and lever-arm correction when the offset's regressor is the velocity variables interpolated
+    (tracker blocks moved with a start velocity, bridge-form velocity factors, velocities estimated with them):
+    scatter over 100 runs against the marginal sigmas (99.8 % chi-square bounds), and no bias."""
+    rng = np.random.default_rng(11)
+    runs, sigma_p, sigma_v, n, m, span = 100, 5e-4, 2e-3 / np.sqrt(5), 20, 5, 0.2
+    r0, dr, dt = np.array([0.12, -0.05, 0.25]), np.array([0.01, -0.02, 0.005]), 0.03
+    poses = [gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.2, 3)), rng.normal([30.0, 0, 0], 0.5)) for _ in range(n)]
+    v_prev, v_k = rng.normal(0, 0.1, (n, 3)), rng.normal(0, 0.1, (n, 3))
+    v_start = v_prev + rng.normal(0, 0.01, (n, 3))  # the filtered velocity the samples were moved with
+    w = rng.normal(0, 0.05, (n, 3))
+    f = (np.arange(m) + 0.5) / m
+    lead = (1 - f) * span
+    err, sig = [], []
+    for _ in range(runs):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for j, pose in enumerate(poses):
+            R, p = pose.rotation().matrix(), pose.translation()
+            kp, kk = V(2 * j), V(2 * j + 1)
+            v_rot = R @ mt.cross(w[j], r0)
+            v_i = np.outer(1 - f, v_prev[j]) + np.outer(f, v_k[j]) + v_rot
+            z = p + R @ (r0 + dr) - dt * v_i - np.outer(lead, v_prev[j] - v_start[j]) + rng.normal(0, sigma_p, (m, 3))
+            f_mean = f.mean()
+            zv = (mt.prism_velocity_W(R, (1 - f_mean) * v_prev[j] + f_mean * v_k[j], w[j], r0 + dr)
+                  - dt * (v_k[j] - v_prev[j]) / span + rng.normal(0, sigma_v, 3))
+            graph.add(gtsam.PriorFactorPose3(X(j), pose, gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
+            for key, truth in ((kp, v_prev[j]), (kk, v_k[j])):  # weak priors: the data decide the velocities
+                graph.add(gtsam.PriorFactorVector(key, truth + rng.normal(0, 0.05, 3),
+                                                  gtsam.noiseModel.Isotropic.Sigma(3, 0.05)))
+                values.insert(key, truth + rng.normal(0, 0.01, 3))
+            graph.add(ft.calibrated_prism_factor(gtsam.noiseModel.Isotropic.Sigma(3 * m, sigma_p), X(j), z, r0,
+                                                 np.tile(v_rot, (m, 1)), L, O, start_velocity_key=kp, lead_s=lead,
+                                                 v_start=v_start[j], velocity_keys=(kp, kk), velocity_fraction=f))
+            graph.add(ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Isotropic.Sigma(3, sigma_v), X(j), kk, zv,
+                                                          w[j], r0 + dr, np.zeros(3), O, previous_velocity_key=kp,
+                                                          fraction=f_mean, span_s=span))
+            values.insert(X(j), pose)
+        values.insert(L, np.zeros(3))
+        values.insert(O, np.zeros(1))
+        _solve_and_record(graph, values, L, O, dr, dt, err, sig)
+    _assert_scatter_matches_sigma(np.array(err), np.array(sig))
 
 
 def test_monte_carlo_scatter_of_inclinometer_effects_matches_reported_sigma():
@@ -146,14 +240,8 @@ def test_monte_carlo_scatter_of_prism_lever_arm_and_clock_offset_matches_reporte
             values.insert(V(j), vel[j, -1])
         values.insert(L, np.zeros(3))
         values.insert(O, np.zeros(1))
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
-        marg = gtsam.Marginals(graph, result)
-        err.append(np.concatenate([result.atVector(L) - dr, result.atVector(O) - dt]))
-        sig.append(np.sqrt(np.concatenate([np.diag(marg.marginalCovariance(k)) for k in (L, O)])))
-    ratio = np.var(err, axis=0, ddof=1) / np.mean(np.square(sig), axis=0)
-    lo, hi = stats.chi2.ppf(0.001, runs - 1) / (runs - 1), stats.chi2.ppf(0.999, runs - 1) / (runs - 1)
-    assert np.all((ratio > lo) & (ratio < hi)), ratio
-    assert np.all(np.abs(np.mean(err, axis=0)) < 4 * np.mean(sig, axis=0) / np.sqrt(runs))  # unbiased
+        _solve_and_record(graph, values, L, O, dr, dt, err, sig)
+    _assert_scatter_matches_sigma(np.array(err), np.array(sig))
 
 
 def _audit(**effects):
@@ -175,6 +263,21 @@ def _assert_found(result, effect, key, truth):
 def test_audit_finds_nothing_on_data_without_effects():
     _, result = _audit()
     assert result.findings == [], [(f["effect"], f["estimate"]) for f in result.findings]
+
+
+@pytest.mark.slow
+def test_audit_false_findings_over_noise_and_scenario_seeds():
+    """Null runs (no effect): 20 noise seeds of the calibration scenario and 10 other scenarios (motion, bursts).
+    The engine allows a false finding with probability 1e-3 per run (family-wise per step): P(>= 2 of 30) < 5e-4.
+    (Before the inclinometer's averaging lag was modelled, incl_bias had p < 0.02 on 12 of 14 such runs.)"""
+    runs = [(3, seed) for seed in range(100, 120)] + [(scenario, 4) for scenario in range(4, 14)]
+    found = []
+    for scenario, seed in runs:
+        sc = TrackerScenario(duration_s=20.0, seed=scenario, burst_rate_per_min=6.0, steer_angle_deg=(1.0, 2.0),
+                             steer_period_s=(20.0, 40.0))
+        result = run_audit(TrackerAudit(estimator_for_audit(sc.measurements(seed=seed))))
+        found += [(scenario, seed, f["effect"]) for f in result.findings]
+    assert len(found) <= 1, found
 
 
 @pytest.mark.parametrize("effect, kwargs, key, truth", [
@@ -210,10 +313,30 @@ def test_audit_names_a_wrong_prism_lever_arm():
     _assert_found(result, "lever_arm_prism", "r_m", sc.r_P_B)
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: a 30 ms tracker clock offset is significant (F ~ 140) but the "
-                   "estimate comes out ~30 % low and the held-out tracker residual does not fall, so it is not "
-                   "accepted (see docs/tracker.md)")
-def test_audit_names_a_tracker_clock_offset():
-    sc, result = _audit(tracker_clock_offset_s=0.03, steer_position_m=(0.05, 0.1),
-                        steer_position_period_s=(4.0, 8.0), steer_position_axes=(0.0, 0.0, 1.0))
-    _assert_found(result, "tracker_time_offset", "dt_s", 0.03)
+@pytest.mark.parametrize("offset_s", [0.03, 0.01])
+def test_audit_names_a_tracker_clock_offset(offset_s):
+    """The tracker stamps 30 ms (10 ms) late while the target is steered up and down (5-10 cm, 4-8 s periods):
+    the audit names the offset alone and sizes it within 3 of its sigmas (~2 ms here)."""
+    _, result = _audit(tracker_clock_offset_s=offset_s, steer_position_m=(0.05, 0.1),
+                       steer_position_period_s=(4.0, 8.0), steer_position_axes=(0.0, 0.0, 1.0))
+    _assert_found(result, "tracker_time_offset", "dt_s", offset_s)
+    gain = result.findings[0]["gain"]
+    assert gain["heldout_rms_after"] <= gain["heldout_rms_before"]
+
+
+def _solve_and_record(graph, values, L, O, dr, dt, err, sig):
+    """Solve one Monte Carlo run; append the (lever arm, offset) error and the marginal sigmas."""
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    marg = gtsam.Marginals(graph, result)
+    err.append(np.concatenate([result.atVector(L) - dr, result.atVector(O) - dt]))
+    sig.append(np.sqrt(np.concatenate([np.diag(marg.marginalCovariance(k)) for k in (L, O)])))
+
+
+def _assert_scatter_matches_sigma(err, sig):
+    """Scatter / reported variance inside the chi-square(runs - 1) 99.8 % band per component, and unbiased
+    (mean error within 4 standard errors)."""
+    runs = len(err)
+    ratio = np.var(err, axis=0, ddof=1) / np.mean(np.square(sig), axis=0)
+    lo, hi = stats.chi2.ppf(0.001, runs - 1) / (runs - 1), stats.chi2.ppf(0.999, runs - 1) / (runs - 1)
+    assert np.all((ratio > lo) & (ratio < hi)), ratio
+    assert np.all(np.abs(np.mean(err, axis=0)) < 4 * np.mean(sig, axis=0) / np.sqrt(runs))

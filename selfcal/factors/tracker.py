@@ -50,13 +50,15 @@ def prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_P_W, w_B, r
     """
     z = np.asarray(v_P_W, dtype=float)
     w, r = np.asarray(w_B, dtype=float), np.asarray(r_P_B, dtype=float)
+    # w and r are constants of the factor: w x r and its model Jacobian once, not at every linearisation
+    w_x_r = mt.cross(w, r)
+    H_pose_B, H_velocity = mt.prism_velocity_jacobians(np.eye(3), w, r)  # (3, 6) at R = I; then R times it
 
     def error(this, values, H):
         R = values.atPose3(pose_key).rotation().matrix()
-        v = values.atVector(velocity_key)
-        e = mt.prism_velocity_W(R, v, w, r) - z
+        e = values.atVector(velocity_key) + R @ w_x_r - z  # mt.prism_velocity_W(R, v, w, r) - z
         if H is not None:
-            H[0], H[1] = mt.prism_velocity_jacobians(R, w, r)
+            H[0], H[1] = R @ H_pose_B, H_velocity  # mt.prism_velocity_jacobians(R, w, r)
         return e
 
     return gtsam.CustomFactor(noise, [pose_key, velocity_key], error)
@@ -86,7 +88,9 @@ def beam_bearing_factor(noise, pose_key: int, bearing_C, r_C_B, R_B_C, tracker_W
 
 def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: int | None = None,
                             offset_key: int | None = None, lever_fixed=np.zeros(3), offset_fixed: float = 0.0,
-                            start_velocity_key: int | None = None, lead_s=None, v_start=None) -> gtsam.CustomFactor:
+                            start_velocity_key: int | None = None, lead_s=None, v_start=None,
+                            velocity_keys: tuple[int, int] | None = None,
+                            velocity_fraction=None) -> gtsam.CustomFactor:
     """Tracker positions with the audit's calibration effects: ``e_i = p + R (r + dr) - dt v_i - z_i`` (m, world).
 
     ``p_P_W`` (n, 3): the n samples of one keyframe, each moved to the keyframe's time (one factor per block);
@@ -95,14 +99,23 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
     or ``offset_fixed``) is the tracker's clock offset (``t_tracker = t_imu + dt``: a sample shows the prism
     ``dt`` earlier).  With ``start_velocity_key`` the move to the keyframe is redone with that velocity variable
     (the previous keyframe's, where the IMU propagation started) instead of ``v_start`` (the one used):
-    ``z_i + lead_i (V - v_start)``, ``lead_i`` (s) = keyframe time - sample time.  Keys: the pose, then the lever
-    arm, the offset, the start velocity (those given).  Error (3 n,).
+    ``z_i + lead_i (V - v_start)``, ``lead_i`` (s) = keyframe time - sample time.
+    With ``velocity_keys = (V_prev, V_k)`` (the velocity variables of the previous keyframe and this one) the
+    offset's regressor is the state velocity interpolated at each sample, ``v_i = (1 - f_i) V_prev + f_i V_k +
+    v_W_i`` (``f_i``: ``velocity_fraction``, 0 at the previous keyframe, 1 at this one; ``v_W`` then holds only
+    the known remainder, e.g. the lever arm's rotation velocity ``R (w x r)``), instead of a measured velocity: a
+    noisy regressor (the tracker's own velocity, 2 mm/s per sample, against a within-block change of a few
+    mm/s) attenuates the offset towards 0 (errors in variables).  Keys: the pose, then the lever arm, the offset,
+    the start velocity, then those of ``velocity_keys`` not already there.  Error (3 n,).
     """
     z, r0, v = np.atleast_2d(p_P_W).astype(float), np.asarray(r_P_B, dtype=float), np.atleast_2d(v_W).astype(float)
     n = len(z)
     keys = [pose_key] + [key for key in (lever_key, offset_key, start_velocity_key) if key is not None]
+    if velocity_keys is not None:
+        keys += [key for key in velocity_keys if key not in keys]
     lead = np.zeros(n) if lead_s is None else np.asarray(lead_s, dtype=float)
     v0 = np.zeros(3) if v_start is None else np.asarray(v_start, dtype=float)
+    frac = None if velocity_keys is None else np.broadcast_to(np.asarray(velocity_fraction, dtype=float), (n,))
 
     def error(this, values, H):
         pose = values.atPose3(pose_key)
@@ -111,41 +124,69 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
         dt = float(values.atVector(offset_key)[0]) if offset_key is not None else float(offset_fixed)
         r = r0 + dr
         moved = z if start_velocity_key is None else z + np.outer(lead, values.atVector(start_velocity_key) - v0)
-        e = (mt.prism_position_delayed(R, pose.translation(), r, v, dt) - moved).ravel()
+        vi = v
+        if velocity_keys is not None:  # the state velocity interpolated at each sample, plus the known remainder
+            vi = np.outer(1.0 - frac, values.atVector(velocity_keys[0])) + np.outer(frac, values.atVector(
+                velocity_keys[1])) + v
+        e = (mt.prism_position_delayed(R, pose.translation(), r, vi, dt) - moved).ravel()
         if H is not None:
-            H[0] = np.tile(np.hstack([-R @ so3.hat(r), R]), (n, 1))
-            i = 1
+            blocks = {pose_key: np.tile(np.hstack([-R @ so3.hat(r), R]), (n, 1))}
             if lever_key is not None:
-                H[i] = np.tile(R, (n, 1))
-                i += 1
+                blocks[lever_key] = np.tile(R, (n, 1))
             if offset_key is not None:
-                H[i] = -v.reshape(-1, 1)
-                i += 1
+                blocks[offset_key] = -np.broadcast_to(vi, (n, 3)).reshape(-1, 1)
             if start_velocity_key is not None:
-                H[i] = -np.kron(lead[:, None], np.eye(3))
+                blocks[start_velocity_key] = -np.kron(lead[:, None], np.eye(3))
+            if velocity_keys is not None:  # one key may also be the start velocity: the blocks add up
+                for key, weight in zip(velocity_keys, (1.0 - frac, frac)):
+                    block = -dt * np.kron(weight[:, None], np.eye(3))
+                    blocks[key] = blocks[key] + block if key in blocks else block
+            for i, key in enumerate(keys):
+                H[i] = blocks[key]
         return e
 
     return gtsam.CustomFactor(noise, keys, error)
 
 
 def calibrated_prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_P_W, w_B, r_P_B, a_W,
-                                     offset_key: int | None = None, offset_fixed: float = 0.0) -> gtsam.CustomFactor:
+                                     offset_key: int | None = None, offset_fixed: float = 0.0,
+                                     previous_velocity_key: int | None = None, fraction: float = 1.0,
+                                     span_s: float | None = None) -> gtsam.CustomFactor:
     """Tracker velocity with the audit's clock offset: ``e = v + R (w x r) - dt a - z`` (m/s, world).
 
     A tracker stamping ``dt`` late reports the velocity of ``dt`` earlier, ``v - dt a`` (``a_W``: the target's
     acceleration over the keyframe interval, from the IMU, known).  Keys: pose, velocity, then the offset.
+
+    With ``previous_velocity_key`` (the previous keyframe's velocity variable, ``span_s`` before) ``v`` is the
+    state velocity interpolated at the samples' mean position ``fraction`` in the interval, ``(1 - f) V_prev +
+    f V``, and ``a = (V - V_prev) / span_s``; ``z`` is then the samples' mean minus what the IMU adds to a linear
+    change over the interval (the Brownian bridge of its noise: uncorrelated with the IMU factor's own
+    velocity increment, where samples moved to the keyframe with the IMU share its noise).  Keys: pose,
+    velocity, the offset, then the previous velocity.
     """
     z, w, r, a = (np.asarray(x, dtype=float) for x in (v_P_W, w_B, r_P_B, a_W))
     keys = [pose_key, velocity_key] + ([offset_key] if offset_key is not None else [])
+    if previous_velocity_key is not None:
+        keys.append(previous_velocity_key)
+    f = float(fraction)
 
     def error(this, values, H):
         R = values.atPose3(pose_key).rotation().matrix()
         dt = float(values.atVector(offset_key)[0]) if offset_key is not None else float(offset_fixed)
-        e = mt.prism_velocity_W(R, values.atVector(velocity_key), w, r) - dt * a - z
+        v = values.atVector(velocity_key)
+        acc = a
+        if previous_velocity_key is not None:
+            v_prev = values.atVector(previous_velocity_key)
+            acc = (v - v_prev) / span_s
+            v = (1.0 - f) * v_prev + f * v
+        e = mt.prism_velocity_W(R, v, w, r) - dt * acc - z
         if H is not None:
             H[0], H[1] = mt.prism_velocity_jacobians(R, w, r)
+            if previous_velocity_key is not None:
+                H[1] = (f - dt / span_s) * H[1]
+                H[len(keys) - 1] = (1.0 - f + dt / span_s) * np.eye(3)
             if offset_key is not None:
-                H[2] = -a[:, None]
+                H[2] = -acc[:, None]
         return e
 
     return gtsam.CustomFactor(noise, keys, error)

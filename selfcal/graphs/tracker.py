@@ -20,15 +20,16 @@ Fault gating (every decision is returned with its statistic):
    ``stride`` samples the largest eigenvalue of ``W = sum nu nu^T`` (m x m) is compared with the threshold
    for which a fault-free sensor (``W ~ Wishart_m(n, I)``) raises ``false_alarms_per_hour`` at most (union
    bound over the tests per hour; the quantile comes from a seeded Monte Carlo of the Bartlett decomposition,
-   :func:`wishart_lambda_max_quantile`).  On detection the sensor's factors of the window still inside the
-   smoother are removed again (``factorsToRemove``) and its new factors are held out; it is readmitted when a
-   full window of its (monitored, not added) residuals passes the same test.
+   :func:`wishart_lambda_max_quantile`).  On detection all the sensor's factors still inside the smoother
+   are removed again (``factorsToRemove``) and its new factors are held out; it is readmitted when a full
+   window of its (monitored, not added) residuals passes the same test.
    Rejected inclinometer samples go to the detector too, winsorised onto the gate's boundary (unless the
    accelerometer shows vibration starting), so a ramp the gate keeps catching is declared within seconds.
 3. Vibration is modelled, not alarmed: the inclinometer factor's covariance grows with the vibration the
    accelerometer shows over a window centred on the sample (:meth:`TrackerEstimator._vibration_covariance`;
    the sample enters provisionally at once and is re-decided when the window is complete) and with the
-   high-frequency energy of its own residuals (:meth:`TrackerEstimator._with_own_vibration`).
+   high-frequency energy of its own residuals (:meth:`TrackerEstimator._own_vibration`); the detector's
+   residual is normalised with the energy of the samples after it too (a burst's onset).
 
 Solvers: ``'isam2'`` (gtsam.ISAM2, the whole history), ``'fixed-lag'`` (gtsam.IncrementalFixedLagSmoother over
 ``lag_s``: bounded memory over hours), and :func:`batch_smooth` (the same accepted factors over all keyframes,
@@ -37,6 +38,7 @@ Gauss-Newton from the online estimates, Levenberg-Marquardt if a step fails).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
@@ -109,7 +111,14 @@ class GatingOptions:
     # significant at vibration_alpha) rejects a few samples, which must not add up to a soft fault
     vibration_hint_alpha: float = 0.2
     diff_window: int = 10  # inclinometer residual differences whose median measures its own vibration
-    diff_ratio: float = 2.5  # their median over its null value before it inflates (P < 1 % without vibration)
+    diff_ratio: float = 2.5  # their median over its null value before it inflates (P = 0.7 % without vibration)
+    # the soft-fault detector's residuals are normalised with the larger of that and the vibration the next
+    # ``onset_window`` differences show (a burst's onset, which the accelerometer cannot see yet and the previous
+    # differences see a second late), median over its null value above ``onset_ratio`` (P = 1 %: median of 3
+    # exponentials, binomial tail); the factor's own noise stays causal.  3 samples: the decision (and the
+    # soft-fault test) waits 0.35 s for them
+    onset_window: int = 3
+    onset_ratio: float = 4.09
     max_consecutive_rejects: int = 20  # then the sensor is readmitted (the state, not it, is judged wrong)
     # a held-out inclinometer whose residuals keep their noise (not stuck) is readmitted after this long: a slow
     # ramp the state followed (tilt and accelerometer bias are one combination for everything but the
@@ -124,6 +133,9 @@ class GatingOptions:
     bias_drift_window: int = 30
     bias_drift_z: float = 6.0
     bias_drift_settle_s: float = 30.0  # the bias converges first
+    # after a hold-out ends the readmitted inclinometer pulls tilt and accelerometer bias back together: seconds of
+    # legitimate bias motion (measured: a bias-drift alarm 5 s after a recovery, on a good sensor)
+    bias_drift_resettle_s: float = 10.0
     # the patent's state recursor for the inclinometer (off: with a MEMS gyro, 1.7e-4 rad/sqrt(s), the
     # gyro-only attitude over a 3 s window wanders ~3 inclinometer sigmas, its pseudo-innovations are strongly
     # correlated and the Wishart threshold does not hold: measured false alarms every few seconds)
@@ -198,6 +210,47 @@ class _Pending:
     extra: np.ndarray | None = None  # velocity for the tracker, body rate for the velocity factor
 
 
+def _inverse_cholesky(S: np.ndarray) -> np.ndarray:
+    """``L^-1`` with ``S = L L^T`` (Cholesky), closed form for 3x3 (numpy's cholesky + inv cost ~30 us)."""
+    if S.shape != (3, 3):
+        return np.linalg.inv(np.linalg.cholesky(S))
+    (s00, s01, s02), (_, s11, s12), (_, _, s22) = S.tolist()
+    l00 = math.sqrt(s00)
+    l10, l20 = s01 / l00, s02 / l00
+    l11 = math.sqrt(s11 - l10 * l10)
+    l21 = (s12 - l20 * l10) / l11
+    l22 = math.sqrt(s22 - l20 * l20 - l21 * l21)
+    # forward substitution on the columns of I
+    i10 = -l10 / (l00 * l11)
+    i21 = -l21 / (l11 * l22)
+    i20 = -(l20 / l00 + l21 * i10) / l22
+    return np.array([[1.0 / l00, 0.0, 0.0], [i10, 1.0 / l11, 0.0], [i20, i21, 1.0 / l22]])
+
+
+def _whiten(S: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``L^-1 r`` with ``S = L L^T`` (Cholesky): the normalised residual.  Closed form for 2x2 and 3x3 (the
+    online gate's sizes; numpy's cholesky + solve cost ~15 us on such matrices, ten times the arithmetic)."""
+    if len(r) == 2:
+        (s00, s01), (_, s11) = S.tolist()
+        r0, r1 = r.tolist()
+        l00 = math.sqrt(s00)
+        l10 = s01 / l00
+        x0 = r0 / l00
+        return np.array([x0, (r1 - l10 * x0) / math.sqrt(s11 - l10 * l10)])
+    if len(r) == 3:
+        (s00, s01, s02), (_, s11, s12), (_, _, s22) = S.tolist()
+        r0, r1, r2 = r.tolist()
+        l00 = math.sqrt(s00)
+        l10, l20 = s01 / l00, s02 / l00
+        l11 = math.sqrt(s11 - l10 * l10)
+        l21 = (s12 - l20 * l10) / l11
+        l22 = math.sqrt(s22 - l20 * l20 - l21 * l21)
+        x0 = r0 / l00
+        x1 = (r1 - l10 * x0) / l11
+        return np.array([x0, x1, (r2 - l20 * x0 - l21 * x1) / l22])
+    return np.linalg.solve(np.linalg.cholesky(S), r)
+
+
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit vector ``a`` to unit vector ``b`` (Rodrigues; a and b nearly equal)."""
     axis = mt.cross(a, b)
@@ -209,9 +262,11 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _navstate_values(nav: gtsam.NavState, k: int) -> gtsam.Values:
+    # by keyword: pybind11 then skips the ~50 overloads of Values.insert it would otherwise try to convert to
+    # (20 us for a Pose3, 110 us for a ConstantBias, per insert)
     values = gtsam.Values()
-    values.insert(X(k), nav.pose())
-    values.insert(V(k), nav.velocity())
+    values.insert(j=X(k), pose3=nav.pose())
+    values.insert(j=V(k), vector=nav.velocity())
     return values
 
 
@@ -253,25 +308,36 @@ class TrackerEstimator:
         self._restart_recursor = False
         self.faulty = {s: False for s in SENSORS}
         self._consecutive: dict[str, int] = {}
-        self._recent = {s: deque(maxlen=g.window) for s in SENSORS}  # (keyframe, factor index) in the smoother
+        # (keyframe, factor index) of each sensor's factors still in the smoother: on a soft-fault alarm all of them
+        # are removed, back to the lag -- a ramp the state followed for seconds before the alarm (the detection
+        # delay exceeds the detector's window) would otherwise stay in the state through the whole hold-out
+        self._recent = {s: deque(maxlen=3 * int(np.ceil(options.lag_s / options.keyframe_s)) + 8) for s in SENSORS}
         self.k = -1
         self.t0_ns = None
         self._last_imu = None  # (t_ns, gyro, accel)
         self._latest = {}  # sensor -> last raw sample, for initialisation
         self._pending: list[_Pending] = []
         self._decisions: list[dict] = []
-        self._incl_residuals: deque = deque(maxlen=g.diff_window + 1)  # inclinometer prediction errors (rad)
+        # (t_ns, prediction error (2,) rad) of every inclinometer sample at its arrival, in order: the own-vibration
+        # estimates of a sample need diff_window samples before it and onset_window after it
+        self._incl_residuals: deque = deque(maxlen=2 * (g.diff_window + g.onset_window) + 24)
         self._incl_up_last, self._incl_t_last, self._incl_dt_s = None, None, None
         self._vibration_hint = False
         self._fault_t_ns: dict[str, int] = {}
         self._grace_until_ns: dict[str, int] = {}
         self._bias_increments: deque = deque(maxlen=g.bias_drift_window)
         self._carried_removals: list[int] = []  # factor indices to remove at the next update
-        # accelerometer history with stamps: the vibration window centred on an inclinometer sample, plus margin
-        n_buf = int(round((g.vibration_window_s + 2 * options.keyframe_s + 0.1) * noise.imu_rate_hz)) + 8
+        self._bias_drift_resume_ns = 0  # no bias-drift test before (re-convergence after a hold-out)
+        self._bias_increment_sum = np.zeros(2)  # of _bias_increments
+        # accelerometer history with stamps: the vibration window centred on an inclinometer sample decided up to
+        # ~1.3 s later (its own samples after it, at >= 5 Hz), and the window after it, plus margin
+        n_buf = int(round((g.vibration_window_s + 1.5 + 2 * options.keyframe_s) * noise.imu_rate_hz)) + 8
         self._acc_t = np.zeros(2 * n_buf, dtype=np.int64)  # ring kept contiguous: written twice, read as a slice
         self._acc = np.zeros((2 * n_buf, 3))
         self._acc_n, self._acc_len = 0, n_buf
+        # a keyframe is due half an IMU interval before keyframe_s has passed (stamps jitter by nanoseconds)
+        self._keyframe_due_ns = 1e9 * (options.keyframe_s - 0.5 / noise.imu_rate_hz)
+        self._hat_r_P_B = -so3.hat(noise.r_P_B)
         self._deferred: list = []
         self._removed_indices: set = set()  # bounded: duplicates only arise within the deferral (< 1 s)
         self._removed_order: deque = deque(maxlen=4096)  # inclinometer factors waiting for the accelerometer after them
@@ -306,7 +372,7 @@ class TrackerEstimator:
         self._acc_t[i] = self._acc_t[i + self._acc_len] = t_ns
         self._acc[i] = self._acc[i + self._acc_len] = accel
         self._acc_n += 1
-        if (t_ns - self.kf_t_ns) * 1e-9 >= self.options.keyframe_s - 0.5 / self.noise.imu_rate_hz:
+        if t_ns - self.kf_t_ns >= self._keyframe_due_ns:
             out.append(self._keyframe(t_ns))
         return out
 
@@ -419,9 +485,8 @@ class TrackerEstimator:
         return indices
 
     def _estimate(self, k):
-        s = self._smoother
-        est = s.calculateEstimate()
-        return est.atPose3(X(k)), est.atVector(V(k)), est.atConstantBias(B(k))
+        s = self._smoother  # per key: calculateEstimate() would build every variable of the lag
+        return s.calculateEstimatePose3(X(k)), s.calculateEstimateVector(V(k)), s.calculateEstimateConstantBias(B(k))
 
     def _vibration_covariance(self, R_W_B: np.ndarray, t_ns: int) -> np.ndarray | None:
         """Extra covariance (2x2, rad^2, in the inclinometer factor's error coordinates) of the inclinometer from
@@ -454,50 +519,72 @@ class TrackerEstimator:
         m = len(acc) // n_avg
         if m < 3:
             return None
-        acc = acc[:m * n_avg].reshape(m, n_avg, 3).mean(axis=1)
-        up_B = R_W_B[2]  # R_W_B^T e_z
-        h1 = np.array([1.0, 0.0, 0.0]) - up_B[0] * up_B  # body x made horizontal (tilts are small)
-        h1 /= np.linalg.norm(h1)
-        H = np.column_stack([h1, mt.cross(up_B, h1)])  # horizontal orthonormal basis of the body frame
+        acc = acc[:m * n_avg].reshape(m, n_avg, 3).sum(axis=1)  # n_avg times the block means
+        ux, uy, uz = R_W_B[2].tolist()  # up in the body, R_W_B^T e_z
+        # horizontal orthonormal basis of the body frame: body x made horizontal (tilts are small), up x that
+        h1 = np.array([1.0 - ux * ux, -ux * uy, -ux * uz])
+        h1 /= math.sqrt(h1 @ h1)
+        H = np.column_stack([h1, mt.cross(np.array([ux, uy, uz]), h1)]) / n_avg
         h = acc @ H
-        h = h - h.mean(axis=0)
+        h -= h.sum(axis=0) / m
         C = h.T @ h / (m - 1)
         white = n.accel_noise_density**2 * n.imu_rate_hz / n_avg
-        ratio = np.trace(C) / (2 * white)
+        (c00, c01), (_, c11) = C.tolist()
+        ratio = (c00 + c11) / (2 * white)
         self._vibration_hint = ratio > _variance_ratio(2 * (m - 1), g.vibration_hint_alpha)
         if ratio <= _variance_ratio(2 * (m - 1), g.vibration_alpha):
             return None
-        lam, U = np.linalg.eigh(C)
-        C_B = (U * np.maximum(lam - white, 0.0)) @ U.T / n.gravity_m_s2**2
-        M = _UP_BASIS.T @ R_W_B @ H
+        # the excess over the white noise along C's principal axes (2x2 eigen-decomposition in closed form)
+        mean, dev = 0.5 * (c00 + c11), math.hypot(0.5 * (c00 - c11), c01)
+        lam1, lam2 = max(mean + dev - white, 0.0), max(mean - dev - white, 0.0)
+        angle = 0.5 * math.atan2(2 * c01, c00 - c11)
+        u = np.array([math.cos(angle), math.sin(angle)])
+        v = np.array([-u[1], u[0]])
+        C_B = (lam1 * np.outer(u, u) + lam2 * np.outer(v, v)) / n.gravity_m_s2**2
+        M = _UP_BASIS.T @ R_W_B @ H * n_avg
         return M @ C_B @ M.T
 
-    def _with_own_vibration(self, factor, values: gtsam.Values, incl_cov: np.ndarray | None, up_B: np.ndarray):
-        """The inclinometer factor with its covariance grown by the vibration its own residuals show.
+    def _own_vibration(self, t_ns: int, ahead: bool = False) -> float:
+        """Vibration variance per axis (rad^2) the inclinometer's own residuals show at its sample ``t_ns``: from
+        the ``diff_window`` differences up to the sample, or (``ahead``) the ``onset_window`` after it; 0 when
+        not significant.
 
-        Below ~1e-3 rad the accelerometer (white noise ~33 inclinometer sigmas per sample) cannot see vibration
-        the inclinometer feels.  The inclinometer's own residual, differenced between consecutive samples,
-        shows it: vibration at 3-25 Hz sampled at 10 Hz is nearly white there, while a soft fault (offset, ramp,
-        stuck output) is slow and cancels in the difference.  Under no vibration ``|d|^2 / v0`` with ``v0 = 2
-        sigma^2 + gyro noise over the sample interval`` is chi2(2)-like per difference; the median of the last
-        ``diff_window`` is robust to a spike.  When it exceeds ``diff_ratio`` times its null median (a
-        fault-free probability below 1 % for 10 differences: order statistic of exponentials), the excess
-        ``(median / ln 4 - v0) / 2`` per axis joins the covariance (isotropic), unless the accelerometer's
-        estimate is already larger.
+        Below ~1e-3 rad the accelerometer (white noise ~16 inclinometer sigmas per averaged block) cannot see
+        vibration the inclinometer feels.  The inclinometer's own prediction errors, differenced between
+        consecutive samples, show it: vibration at 3-25 Hz sampled at 10 Hz is nearly white there, while a soft
+        fault (offset, ramp, stuck output) is slow and cancels in the difference.  Without vibration
+        ``|d|^2 ~ v0 chi2(2)``, ``v0 = 2 sigma^2 + gyro noise over the sample interval`` per axis, median
+        ``2 ln 2 v0``; the median of the window (a spike moves it little) above ``diff_ratio`` (``onset_ratio``)
+        times that gives the excess ``(median / ln 4 - v0) / 2`` per axis.  The differences after the sample
+        matter at a burst's onset: its envelope rises within a second (``u^4 (1-u)^4``), so the first samples it
+        tilts have only the differences after them in the burst -- normalised by the previous ones alone, their
+        rejects and 5-sigma residuals added up to false soft-fault alarms (5 of the 6 per hour with bursts).
         """
         g, n = self.options.gating, self.noise
-        e = np.asarray(factor.unwhitenedError(values))
         buf = self._incl_residuals
-        buf.append(e)
-        if not g.vibration_inflation or len(buf) < g.diff_window + 1:
-            return factor
-        d = np.diff(np.array(buf), axis=0)
+        w, ratio = (g.onset_window, g.onset_ratio) if ahead else (g.diff_window, g.diff_ratio)
+        stamps = [t for t, _ in buf]
+        if t_ns not in stamps:
+            return 0.0
+        i = stamps.index(t_ns)
+        lo, hi = (i, i + w) if ahead else (i - w, i)
+        if lo < 0 or hi >= len(buf):
+            return 0.0
+        d = np.diff(np.array([buf[j][1] for j in range(lo, hi + 1)]), axis=0)
         rate = 10.0 if self._incl_dt_s is None else 1.0 / self._incl_dt_s
         v0 = 2 * n.incl_sigma_rad**2 + n.gyro_noise_density**2 / rate
-        med = float(np.median(np.einsum("ij,ij->i", d, d)))
-        if med <= g.diff_ratio * v0 * 2 * np.log(2):
+        d2 = sorted(np.einsum("ij,ij->i", d, d).tolist())  # a few values: np.median costs ~40 us
+        med = 0.5 * (d2[(w - 1) // 2] + d2[w // 2])
+        if med <= ratio * v0 * 2 * np.log(2):
+            return 0.0
+        return 0.5 * (med / (2 * np.log(2)) - v0)
+
+    def _with_own_vibration(self, factor, excess: float, incl_cov: np.ndarray | None, up_B: np.ndarray):
+        """The inclinometer factor with its covariance grown by the vibration variance ``excess`` (rad^2 per axis,
+        :meth:`_own_vibration`, isotropic), unless the accelerometer's estimate is already larger."""
+        n = self.noise
+        if not self.options.gating.vibration_inflation or excess <= 0.0:
             return factor
-        excess = 0.5 * (med / (2 * np.log(2)) - v0)
         base = np.zeros((2, 2)) if incl_cov is None else incl_cov
         if excess <= 0.5 * np.trace(base):
             return factor
@@ -510,11 +597,13 @@ class TrackerEstimator:
         for the centred window (:meth:`_deferred_inclinometer`), which keeps it, re-weights it or removes it."""
         entry = {"t": t_m, "k": k, "up": self._incl_up_last, "index": None, "values": values, "P": P_blocks}
         self._deferred.append(entry)
+        nominal = ft.inclinometer_factor(self._noise_models["incl0"], X(k), entry["up"])
+        self._incl_residuals.append((t_m, np.asarray(nominal.unwhitenedError(values))))
         if self.faulty["incl0"] or not self.options.gating.vibration_inflation:
             return []
         R = values.atPose3(X(k)).rotation().matrix()
         cov = self._vibration_covariance(R, t_ns - int(0.5e9 * self.options.gating.vibration_window_s))
-        factor = self._incl_factor(k, entry["up"], cov)
+        factor = nominal if cov is None else self._incl_factor(k, entry["up"], cov)
         stat, _ = self._innovation(factor, values, P_blocks)
         if self.options.gating.chi2 and stat > self._chi2_threshold[2]:
             return []
@@ -544,13 +633,19 @@ class TrackerEstimator:
             self.noise.incl_sigma_rad**2 * np.eye(2) + cov)
         return ft.inclinometer_factor(noise, X(k), up_B)
 
+    def _incl_deferral_s(self) -> float:
+        """How long an inclinometer sample's decision waits: for the accelerometer window centred on it and for
+        ``onset_window`` of its own samples after it (0 without the vibration model)."""
+        g = self.options.gating
+        if not g.vibration_inflation:
+            return 0.0
+        return max(0.5 * g.vibration_window_s, (g.onset_window + 0.5) * (self._incl_dt_s or 0.1))
+
     def _deferred_inclinometer(self, t_ns: int, k: int, values: gtsam.Values, P_blocks: dict) -> list:
         """Gate the inclinometer samples whose centred vibration window is complete (see
         :meth:`_vibration_covariance`); each factor stays on the keyframe it arrived at, its innovation is the
         one predicted at its arrival."""
-        half_ns = 0.5e9 * self.options.gating.vibration_window_s
-        if not self.options.gating.vibration_inflation:
-            half_ns = 0.0
+        half_ns = 1e9 * self._incl_deferral_s()
         ready = [d for d in self._deferred if d["t"] + half_ns <= t_ns]
         self._deferred = [d for d in self._deferred if d["t"] + half_ns > t_ns]
         out = []
@@ -562,12 +657,28 @@ class TrackerEstimator:
             t_m, km, up, vals, P = d["t"], d["k"], d["up"], d.pop("values"), d.pop("P")
             R = vals.atPose3(X(km)).rotation().matrix()
             cov = self._vibration_covariance(R, t_m)
-            factor = self._with_own_vibration(self._incl_factor(km, up, cov), vals, cov, up)
+            base = self._incl_factor(km, up, cov)
+            causal = self._own_vibration(t_m)
+            factor = self._with_own_vibration(base, causal, cov, up)
             stat, nu = self._innovation(factor, vals, P)
             if self.options.gating.eigen and self.options.gating.recursor:
                 self._recursor_test(factor, km, t_m)
-            nominal = cov is None and np.allclose(factor.noiseModel().sigmas(), self.noise.incl_sigma_rad)
-            keep = self._gate("incl0", t_m, stat, nu, k, inflated=not nominal, excused=self._vibration_hint)
+            nominal = cov is None and factor is base
+            # the soft-fault detector's residual: normalised with the vibration the samples after it show too, when
+            # the accelerometer after it (up to 0.5 s, as far as it has arrived) corroborates (energy above its
+            # white noise at the loose hint level): a fault's own transients (the state lurching after a ramp) must
+            # not excuse it
+            monitor = None
+            onset = self._own_vibration(t_m, ahead=True) if self.options.gating.eigen else 0.0
+            if onset > causal:
+                hint = self._vibration_hint
+                self._vibration_covariance(R, t_m + int(0.5e9 * self.options.gating.vibration_window_s))
+                ahead, self._vibration_hint = self._vibration_hint, hint
+                grown = self._with_own_vibration(base, onset, cov, up) if ahead else factor
+                if grown is not factor:
+                    monitor = self._innovation(grown, vals, P) + (True,)
+            keep = self._gate("incl0", t_m, stat, nu, k, inflated=not nominal, excused=self._vibration_hint,
+                              monitor=monitor)
             if d["index"] is not None:
                 unchanged = nominal and d["cov"] is None
                 if keep and unchanged:
@@ -613,22 +724,30 @@ class TrackerEstimator:
     def _innovation(self, factor, values, P_blocks):
         """(statistic, normalised residual) of a factor at the propagated state with covariance P."""
         A, b = factor.linearize(values).jacobian()
-        P = np.zeros((A.shape[1], A.shape[1]))
-        col = 0
-        for key in factor.keys():
-            Pk = P_blocks[chr(gtsam.Symbol(key).chr())]
-            d = Pk.shape[0]
-            P[col:col + d, col:col + d] = Pk
-            col += d
-        S = np.eye(len(b)) + A @ P @ A.T
-        L = np.linalg.cholesky(S)
-        nu = np.linalg.solve(L, -b)
+        keys = factor.keys()
+        if len(keys) == 1:  # a pose factor (inclinometer, camera)
+            P = P_blocks["x"]
+        else:
+            P = np.zeros((A.shape[1], A.shape[1]))
+            col = 0
+            for key in keys:
+                Pk = P_blocks[chr(gtsam.Symbol(key).chr())]
+                d = Pk.shape[0]
+                P[col:col + d, col:col + d] = Pk
+                col += d
+        S = A @ P @ A.T
+        S.flat[::len(b) + 1] += 1.0  # + I: whitened measurement noise
+        nu = _whiten(S, -b)
         return float(nu @ nu), nu
 
     def _gate(self, tag: str, t_ns: int, stat: float, nu: np.ndarray, k: int, inflated: bool = False,
-              excused: bool = False) -> bool:
-        """Chi-square gate and eigenvalue detector for one measurement; logs the decision; True = add it."""
+              excused: bool = False, monitor: tuple | None = None) -> bool:
+        """Chi-square gate and eigenvalue detector for one measurement; logs the decision; True = add it.
+
+        ``monitor`` = (statistic, normalised residual, inflated) for the soft-fault detector when it differs
+        from the factor's (see ``GatingOptions.onset_window``)."""
         gating = self.options.gating
+        m_stat, m_nu, m_inflated = monitor if monitor is not None else (stat, nu, inflated)
         sensor = tag.split("/")[0]
         dof = len(nu)
         threshold = self._chi2_threshold[dof]
@@ -640,7 +759,7 @@ class TrackerEstimator:
             decision["decision"] = "held_out"
             self.counts["held_out"] += 1
             if detector is not None:  # monitored while held out: readmitted when a full window looks healthy
-                lam = detector.push(nu, inflated)
+                lam = detector.push(m_nu, m_inflated)
                 held_s = (t_ns - self._fault_t_ns.get(sensor, t_ns)) * 1e-9
                 healthy = lam is not None and detector.certifies_recovery(lam)
                 if healthy or (lam is not None and held_s > gating.max_holdout_s
@@ -648,6 +767,7 @@ class TrackerEstimator:
                     self.faulty[sensor] = False
                     detector.reset()
                     outcome = "recovered" if healthy else "readmitted_after_holdout"
+                    self._bias_drift_resume_ns = int(t_ns + 1e9 * gating.bias_drift_resettle_s)
                     if not healthy:  # the state is off: the sensor's samples enter ungated until it has come back
                         self._grace_until_ns[sensor] = int(t_ns + 1e9 * gating.max_grace_s)
                     self._decisions_now.append({"t_ns": int(t_ns), "sensor": tag, "test": "eigen", "statistic": lam,
@@ -665,7 +785,7 @@ class TrackerEstimator:
             decision["decision"] = "accept_grace"
             self.counts["accepted"] += 1
             if detector is not None:
-                lam = detector.push(nu, inflated)
+                lam = detector.push(m_nu, m_inflated)
                 if lam is not None and detector.healthy(lam):
                     del self._grace_until_ns[sensor]
             return True
@@ -681,7 +801,9 @@ class TrackerEstimator:
                 if excused:  # the accelerometer shows vibration starting: the reject is not evidence of a fault
                     decision["vibration"] = True
                 else:
-                    self._monitor(tag, detector, nu * np.sqrt(threshold / stat), t_ns, k, inflated)
+                    if monitor is not None and m_stat <= threshold:
+                        decision["vibration"] = True  # the samples after it show a burst starting
+                    self._monitor(tag, detector, m_nu * np.sqrt(min(1.0, threshold / m_stat)), t_ns, k, m_inflated)
                 return False
             if self._consecutive[tag] <= gating.max_consecutive_rejects:
                 decision["decision"] = "reject"
@@ -697,7 +819,7 @@ class TrackerEstimator:
             decision["decision"] = "accept"
         self.counts["accepted"] += 1
         if monitored:
-            self._monitor(tag, detector, nu, t_ns, k, inflated)
+            self._monitor(tag, detector, m_nu, t_ns, k, m_inflated)
         return True
 
     def _monitor(self, tag: str, detector: EigenDetector, nu: np.ndarray, t_ns: int, k: int,
@@ -760,18 +882,18 @@ class TrackerEstimator:
         r = n.r_P_B
         pred = p_k + R_k @ r
         Z = np.array([m.z + pred - (m.nav.position() + m.nav.attitude().matrix() @ r) for m in pending])
-        H = np.hstack([-R_k @ so3.hat(r), R_k])
-        S = H @ P_blocks["x"] @ H.T + n.tracker_sigma_m**2 * np.eye(3)
-        L = np.linalg.cholesky(S)
+        H = np.hstack([R_k @ self._hat_r_P_B, R_k])  # d(p + R r)/d[w, t] = [-R [r]x, R]
+        S = H @ P_blocks["x"] @ H.T
+        S.flat[::4] += n.tracker_sigma_m**2
         # L^-1 of a 3x3 once, then one small product: scipy's solve_triangular (LAPACK trtrs) costs ~7 ms a call
         # on a loaded machine with OpenBLAS threads, more than the whole keyframe update
-        nu = (Z - pred) @ np.linalg.inv(L).T
+        nu = (Z - pred) @ _inverse_cholesky(S).T
         stat = np.einsum("ij,ij->i", nu, nu)
         keep = np.array([self._gate("tracker0", m.t_ns, float(s), v, k) for m, s, v in zip(pending, stat, nu)])
         out = []
         if keep.any():
             noise = gtsam.noiseModel.Isotropic.Sigma(3, n.tracker_sigma_m / np.sqrt(keep.sum()))
-            factor = ft.prism_position_factor(noise, X(k), Z[keep].mean(axis=0), r)
+            factor = ft.prism_position_factor(noise, X(k), Z[keep].sum(axis=0) / keep.sum(), r)
             if self.graph_log is not None:  # the audit's record (batch runs only)
                 kept = [m for m, kk in zip(pending, keep) if kk]
                 velocities = np.array([m.extra[:3] for m in kept]) if all(m.extra is not None for m in kept) else None
@@ -782,19 +904,20 @@ class TrackerEstimator:
         with_velocity = [i for i, m in enumerate(pending) if keep[i] and m.extra is not None]
         if with_velocity:
             vel = np.array([pending[i].extra[:3] + v_k - pending[i].nav.velocity() for i in with_velocity])
-            w = np.array([pending[i].extra[3:] for i in with_velocity]).mean(axis=0)
-            Hv = np.hstack([-R_k @ so3.hat(mt.cross(w, r)), np.zeros((3, 3)), np.eye(3)])
-            P = np.zeros((9, 9))
-            P[:6, :6], P[6:, 6:] = P_blocks["x"], P_blocks["v"]
+            w = np.array([pending[i].extra[3:] for i in with_velocity]).sum(axis=0) / len(with_velocity)
+            # H = [-R [w x r]x (rotation), 0 (position), I (velocity)]: S = H_rot P_rot H_rot^T + P_v + noise;
             # the mean of n samples: state uncertainty unchanged, measurement noise / n
-            Sv = Hv @ P @ Hv.T + n.tracker_velocity_sigma_m_s**2 / len(with_velocity) * np.eye(3)
-            e = vel.mean(axis=0) - mt.prism_velocity_W(R_k, v_k, w, r)
-            nu_v = np.linalg.solve(np.linalg.cholesky(Sv), e)
+            H_rot = -R_k @ so3.hat(mt.cross(w, r))
+            Sv = H_rot @ P_blocks["x"][:3, :3] @ H_rot.T + P_blocks["v"]
+            Sv.flat[::4] += n.tracker_velocity_sigma_m_s**2 / len(with_velocity)
+            vel_mean = vel.sum(axis=0) / len(with_velocity)
+            e = vel_mean - mt.prism_velocity_W(R_k, v_k, w, r)
+            nu_v = _whiten(Sv, e)
             if self._gate("tracker0/velocity", pending[with_velocity[-1]].t_ns, float(nu_v @ nu_v), nu_v, k):
                 noise = gtsam.noiseModel.Isotropic.Sigma(3, n.tracker_velocity_sigma_m_s / np.sqrt(len(with_velocity)))
-                factor = ft.prism_velocity_factor(noise, X(k), V(k), vel.mean(axis=0), w, r)
+                factor = ft.prism_velocity_factor(noise, X(k), V(k), vel_mean, w, r)
                 if self.graph_log is not None:  # the audit's record (batch runs only)
-                    self._remember(factor, z=vel.mean(axis=0), w_B=w, sigma=n.tracker_velocity_sigma_m_s / np.sqrt(
+                    self._remember(factor, z=vel_mean, w_B=w, sigma=n.tracker_velocity_sigma_m_s / np.sqrt(
                         len(with_velocity)), a_W=(v_k - self.nav.velocity()) / max(self.pim.deltaTij(), 1e-3))
                 out.append((factor, "tracker0/velocity"))
         return out
@@ -803,7 +926,7 @@ class TrackerEstimator:
         k = self.k + 1
         nav_k = self._predict()
         graph, values, tags = gtsam.NonlinearFactorGraph(), _navstate_values(nav_k, k), []
-        values.insert(B(k), self.bias)
+        values.insert(j=B(k), constant_bias=self.bias)
         graph.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), self.pim))
         tags.append(None)
         metas = [None]
@@ -814,9 +937,10 @@ class TrackerEstimator:
         P_blocks = {"x": P_pose, "v": self._P_vel + cov[6:9, 6:9]}
         self._decisions_now, self._to_remove, accepted = [], self._carried_removals, []
         self._carried_removals = []
-        # the state recursor rides on the gyro alone: attitude of the last reset times the gyro's rotation
-        self._rec_R = self._rec_R @ self.pim.deltaRij().matrix()
-        self._rec_cov = self._rec_cov + self.noise.gyro_noise_density**2 * dt * np.eye(3)
+        if self.options.gating.recursor:
+            # the state recursor rides on the gyro alone: attitude of the last reset times the gyro's rotation
+            self._rec_R = self._rec_R @ self.pim.deltaRij().matrix()
+            self._rec_cov = self._rec_cov + self.noise.gyro_noise_density**2 * dt * np.eye(3)
         tracker = [m for m in self._pending if m.sensor == "tracker0"]
         if tracker:
             accepted.extend(self._tracker_factors(tracker, k, nav_k, P_blocks))
@@ -896,10 +1020,16 @@ class TrackerEstimator:
         self._bias_drift_prev = a
         if previous is None:
             return
-        self._bias_increments.append((a - previous)[:2] / (self.noise.accel_random_walk * np.sqrt(dt)))
-        if len(self._bias_increments) < g.bias_drift_window or (t_ns - self.t0_ns) * 1e-9 < g.bias_drift_settle_s:
+        increments = self._bias_increments
+        if len(increments) == increments.maxlen:
+            self._bias_increment_sum = self._bias_increment_sum - increments[0]  # running sum of the window
+        step = (a[:2] - previous[:2]) / (self.noise.accel_random_walk * math.sqrt(dt))
+        increments.append(step)
+        self._bias_increment_sum = step if len(increments) == 1 else self._bias_increment_sum + step
+        if (len(increments) < g.bias_drift_window or (t_ns - self.t0_ns) * 1e-9 < g.bias_drift_settle_s
+                or t_ns < self._bias_drift_resume_ns):
             return
-        z = float(np.max(np.abs(np.sum(self._bias_increments, axis=0)))) / np.sqrt(g.bias_drift_window)
+        z = max(abs(x) for x in self._bias_increment_sum.tolist()) / math.sqrt(g.bias_drift_window)
         if z <= g.bias_drift_z or any(self.faulty.values()):
             return
         self.faulty["incl0"] = True
@@ -913,10 +1043,10 @@ class TrackerEstimator:
         self._carried_removals.extend(self._removable("incl0", k))
 
     def _removable(self, tag: str, k: int) -> list[int]:
-        """Factor indices of ``tag`` from the detection window still inside the smoother (not marginalised)."""
+        """Factor indices of all ``tag``'s recent factors still inside the smoother (not marginalised)."""
         # factors are logged with the keyframe they entered at; a deferred inclinometer factor sits on a keyframe
         # up to the deferral older
-        defer = int(np.ceil(0.5 * self.options.gating.vibration_window_s / self.options.keyframe_s)) + 1
+        defer = int(np.ceil(self._incl_deferral_s() / self.options.keyframe_s)) + 1
         margin = int(np.ceil(self.options.lag_s / self.options.keyframe_s)) - 2 - defer
         out = [idx for kf, idx in self._recent[tag] if self.options.mode == "isam2" or k - kf < margin]
         self._recent[tag].clear()
