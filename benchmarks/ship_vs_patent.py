@@ -64,22 +64,25 @@ def run_scenario(kind: str, duration_s: float, remove_known: bool, seed: int = 3
 
 
 def plot(traces, path):
-    """Roll error against the truth over the whole voyage, both methods, one panel per scenario."""
+    """Roll and pitch error against the truth over the whole voyage, both methods, one row per scenario."""
     from matplotlib.figure import Figure
-    fig = Figure(figsize=(12, 3.0 * len(traces)))
+    fig = Figure(figsize=(16, 3.0 * len(traces)))
     for row, (name, (t, patent, batch, online, scenario)) in enumerate(traces.items()):
-        ax = fig.add_subplot(len(traces), 1, row + 1)
-        ax.plot(t, np.degrees(patent.roll - scenario.truth_attitude(t)[0]), lw=0.6, label="patent filter")
-        for est, style, label in ((online, ":", "graph (iSAM2, online)"), (batch, "-", "graph (batch)")):
-            ax.plot(est.t_s, np.degrees(est.roll - scenario.truth_attitude(est.t_s)[0]), style, lw=0.8, label=label)
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylim(-0.6, 0.6)
-        ax.set_title(f"{name}: roll error against the truth (known accelerations removed)")
-        ax.set_ylabel("roll error [deg]")
-        ax.legend(loc="upper right", fontsize=8)
-    ax.set_xlabel("time [s]")
+        for col, (axis, index) in enumerate((("roll", 0), ("pitch", 1))):
+            ax = fig.add_subplot(len(traces), 2, 2 * row + col + 1)
+            truth = lambda times: scenario.truth_attitude(times)[index]
+            ax.plot(t, np.degrees(getattr(patent, axis) - truth(t)), lw=0.6, label="patent filter")
+            for est, style, label in ((online, ":", "graph (iSAM2, online)"), (batch, "-", "graph (batch)")):
+                ax.plot(est.t_s, np.degrees(getattr(est, axis) - truth(est.t_s)), style, lw=0.8, label=label)
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_ylim(-0.6, 0.6)
+            ax.set_title(f"{name}: {axis} error against the truth (known accelerations removed)")
+            ax.set_ylabel(f"{axis} error [deg]")
+            ax.legend(loc="upper right", fontsize=8)
+            if row == len(traces) - 1:
+                ax.set_xlabel("time [s]")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=80)
 
 
 def main():
