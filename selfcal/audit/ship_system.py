@@ -32,7 +32,6 @@ from selfcal.graphs import imu_pair
 from selfcal.graphs.ship import (GYRO_SCALE_KEY, LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY,
                                  ShipGraph, ShipGraphOptions, ShipInputs, keyframes_from_inputs)
 from selfcal.graphs.solve import marginal_covariances, optimize
-from selfcal.models import ship
 
 MEANINGS = {"lever_arm": "the accelerometer is displaced from the centre of rotation: the hull's angular "
                          "acceleration and rate tilt the force it measures",
@@ -50,10 +49,12 @@ class ShipAudit:
     folds = 2
     base_model = "attitude"
 
-    def __init__(self, inputs: ShipInputs, sensor: str = "imu0", keyframe_s: float = AUDIT_KEYFRAME_S):
+    def __init__(self, inputs: ShipInputs, sensor: str = "imu0", keyframe_s: float = AUDIT_KEYFRAME_S,
+                 options: ShipGraphOptions | None = None):
+        """``options``: the base model's (a vessel's by default); the effects under test are switched by the audit."""
         self.inputs, self.sensor = inputs, sensor
         self.base_effects = ()
-        self.options = ShipGraphOptions(keyframe_s=keyframe_s, estimate_lever_arm=False)
+        self.options = replace(options or ShipGraphOptions(), keyframe_s=keyframe_s, estimate_lever_arm=False)
         self.frames = keyframes_from_inputs(inputs, self.options)
         t = np.array([f.t_s for f in self.frames])
         half = 0.5 * (t[0] + t[-1])
@@ -114,16 +115,9 @@ class ShipAudit:
         return self._families(optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE), builder, other)
 
     def _families(self, values, builder: ShipGraph, part) -> list[ResidualFamily]:
-        options = builder.options
-        r = values.atVector(LEVER_ARM_KEY) if values.exists(LEVER_ARM_KEY) else np.asarray(options.lever_arm_m)
-        k = float(values.atVector(SPEED_SCALE_KEY)[0]) if values.exists(SPEED_SCALE_KEY) else options.speed_scale
         frames = self._frames(part)
-        e = np.empty((len(frames), 2))
-        sigma = np.empty(len(frames))
-        for j, frame in enumerate(frames):
-            e[j] = ship.level_residual(values.atRot3(R_KEY(j)).matrix(), frame.accel_m_s2, frame.A_S, r,
-                                       frame.a_known_S, k)[0]
-            sigma[j] = frame.tilt_sigma_rad
+        e = np.array([builder.tilt_factor(frame, R_KEY(j)).unwhitenedError(values) for j, frame in enumerate(frames)])
+        sigma = np.array([frame.tilt_sigma_rad for frame in frames])
         coords = {"time_s": np.array([f.t_s for f in frames]),
                   "angular acceleration": np.array([np.linalg.norm(f.A_S) for f in frames]),
                   "surge acceleration": np.array([f.a_known_S[0] for f in frames]),

@@ -17,15 +17,25 @@ from selfcal.models import ship
 
 
 def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: int | None = None,
-                speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0)) -> gtsam.CustomFactor:
+                speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0),
+                speed_key: int | None = None) -> gtsam.CustomFactor:
     """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
-    (without a lever-arm key, the known ``lever_arm_m`` is used)."""
+    (without a lever-arm key, the known ``lever_arm_m`` is used).
+
+    Without a speed source, ``speed_key`` (Vector1, the speed through the water in m/s) stands for the speed
+    log: ``a_known_S`` is then the acceleration per unit speed, ``(0, yaw rate, 0)``, and the speed is the gain
+    ``1 + k`` of :func:`selfcal.models.ship.level_residual` (so its Jacobian is the one on ``k``)."""
     f_S, A_S, a_known_S, known_r = (np.asarray(x, dtype=float) for x in (f_S, A_S, a_known_S, lever_arm_m))
-    keys = [rotation_key] + [k for k in (lever_arm_key, speed_scale_key) if k is not None]
+    if speed_key is not None and speed_scale_key is not None:
+        raise ValueError("a speed-log scale and an unknown speed exclude each other")
+    gain_key = speed_key if speed_key is not None else speed_scale_key
+    keys = [rotation_key] + [k for k in (lever_arm_key, gain_key) if k is not None]
 
     def error(this, values, H):
         r = values.atVector(lever_arm_key) if lever_arm_key is not None else known_r
-        k = values.atVector(speed_scale_key)[0] if speed_scale_key is not None else 0.0
+        k = values.atVector(gain_key)[0] if gain_key is not None else 0.0
+        if speed_key is not None:
+            k -= 1.0  # gain (1 + k) = the speed
         e, H_R, H_r, H_k = ship.level_residual(values.atRot3(rotation_key).matrix(), f_S, A_S, r, a_known_S, k)
         if H is not None:
             H[0] = H_R
@@ -33,7 +43,7 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: in
             if lever_arm_key is not None:
                 H[slot] = H_r
                 slot += 1
-            if speed_scale_key is not None:
+            if gain_key is not None:
                 H[slot] = H_k
         return e
 

@@ -30,7 +30,7 @@ from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
 from selfcal.graphs.solve import optimize
 from selfcal.models import imu, ship
 
-R_KEY, B_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B
+R_KEY, B_KEY, V_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B, gtsam.symbol_shorthand.V
 LEVER_ARM_KEY, SPEED_SCALE_KEY = gtsam.symbol("l", 0), gtsam.symbol("k", 0)
 GYRO_SCALE_KEY = gtsam.symbol("g", 0)
 RELATIVE_TOLERANCE = 1e-5  # LM converges in a few iterations, then crawls along the weakly determined lever arm
@@ -64,6 +64,11 @@ class ShipGraphOptions:
     tilt_average_s: float = 0.2  # the force is averaged over this centred window: the noise falls by its sample
     # count, and a roll of period T is attenuated by only (pi w / T)^2 / 6 (0.26 % at w = 0.2 s, T = 5 s)
     remove_known_acceleration: bool = True
+    estimate_unknown_speed: bool = True  # without a speed source (none, or not removed), the speed through the
+    # water is an unknown: the turns show it, the centrifugal v x yaw rate tilting the force across the hull
+    speed_segment_s: float = 30.0  # the unknown speed is constant over segments this long, linked by a walk of
+    speed_walk_m_s_sqrt_s: float = 0.1  # m/s per sqrt(s): a hull's surge of 0.05-0.25 m/s^2 over tens of seconds
+    speed_prior_m_s: tuple = (0.0, 10.0)  # mean and sigma before the first turn (a ship's speeds, either way)
     initial_bias_sigma_rad_s: float = 0.1  # uncalibrated MEMS gyros start degrees per second off
     estimate_lever_arm: bool = True
     lever_arm_m: tuple = (0.0, 0.0, 0.0)  # known (or prior mean) accelerometer position from the centre of rotation
@@ -150,6 +155,7 @@ class Keyframe:
     a_known_S: np.ndarray  # (3,) hull acceleration known from the speed log and the yaw rate
     has_speed: bool = False
     tilt_sigma_rad: float = 0.01  # per axis (:func:`tilt_sigma_rad`)
+    yaw_rate_rad_s: float = 0.0  # averaged like the force: the centrifugal term of an unknown speed
 
 
 def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
@@ -165,6 +171,7 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     # what is subtracted from the averaged force is averaged the same way (the residual is linear in them)
     A = uniform_filter1d(A, size=n_average, axis=0, mode="nearest")
     a_known = uniform_filter1d(a_known, size=n_average, axis=0, mode="nearest")
+    yaw_rate = uniform_filter1d(inputs.gyro_rad_s[:, 2], size=n_average, mode="nearest")
     frames, previous = [], None
     for i in index:
         span = slice(previous, i) if previous is not None else slice(0, 0)
@@ -172,7 +179,7 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
         sigma = tilt_sigma_rad(noise_var[i], n_average, a_known[i] if has_speed else None, f_mean[i],
                                inputs.gravity_m_s2, options)
         frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], f_mean[i], A[i], a_known[i],
-                               has_speed, sigma))
+                               has_speed, sigma, float(yaw_rate[i])))
         previous = i
     return frames
 
@@ -187,9 +194,29 @@ class ShipGraph:
         self.params.setGyroscopeCovariance(gyro_noise_density**2 * np.eye(3))
         self.t0_s: float | None = None
         self.k = -1  # index of the last keyframe added
+        self.last_speed_key: int | None = None  # the unknown speed's newest segment
 
     def bias_key(self, t_s: float) -> int:
         return B_KEY(int((t_s - self.t0_s) // self.options.bias_segment_s))
+
+    def speed_key(self, t_s: float) -> int:
+        return V_KEY(int((t_s - self.t0_s) // self.options.speed_segment_s))
+
+    def unknown_speed(self, frame: Keyframe) -> bool:
+        return self.options.estimate_unknown_speed and not frame.has_speed
+
+    def tilt_factor(self, frame: Keyframe, rotation_key: int) -> gtsam.CustomFactor:
+        """The keyframe's tilt factor, with the hull acceleration as the options and the frame's speed source say
+        (also what the audit evaluates its residuals with)."""
+        options = self.options
+        speed_scale = options.estimate_speed_scale and frame.has_speed
+        a_known = frame.a_known_S if speed_scale else (1.0 + options.speed_scale) * frame.a_known_S
+        speed = self.speed_key(frame.t_s) if self.unknown_speed(frame) else None
+        if speed is not None:
+            a_known = ship.known_acceleration_S(1.0, 0.0, frame.yaw_rate_rad_s)  # per m/s of speed
+        return tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), rotation_key, frame.accel_m_s2,
+                           frame.A_S, a_known, LEVER_ARM_KEY if options.estimate_lever_arm else None,
+                           SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed)
 
     def tilt_start(self, frame: Keyframe) -> gtsam.Rot3:
         roll, pitch = ship.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)
@@ -205,13 +232,13 @@ class ShipGraph:
         self.k += 1
         k = self.k
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        speed_scale = options.estimate_speed_scale and frame.has_speed
-        a_known = frame.a_known_S if speed_scale else (1.0 + options.speed_scale) * frame.a_known_S
-        graph.add(tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), R_KEY(k), frame.accel_m_s2,
-                              frame.A_S, a_known, LEVER_ARM_KEY if options.estimate_lever_arm else None,
-                              SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m))
         if k == 0:
             self.t0_s = frame.t_s
+        speed_scale = options.estimate_speed_scale and frame.has_speed
+        graph.add(self.tilt_factor(frame, R_KEY(k)))
+        if self.unknown_speed(frame):
+            self._add_speed(graph, values, estimate, self.speed_key(frame.t_s))
+        if k == 0:
             self.previous_t_s = frame.t_s
             if options.estimate_lever_arm:
                 graph.add(gtsam.PriorFactorVector(LEVER_ARM_KEY, np.asarray(options.lever_arm_m, dtype=float),
@@ -262,6 +289,22 @@ class ShipGraph:
         values.insert(R_KEY(k), propagated)
         return graph, values
 
+    def _add_speed(self, graph, values, estimate, key):
+        """The unknown speed's segment ``key``: a prior on the first, a random walk from the one before."""
+        if (estimate is not None and estimate.exists(key)) or values.exists(key):
+            return
+        mean, sigma = self.options.speed_prior_m_s
+        previous = self.last_speed_key
+        if previous is None:
+            graph.add(gtsam.PriorFactorVector(key, np.array([mean]), gtsam.noiseModel.Isotropic.Sigma(1, sigma)))
+            start = np.array([mean])
+        else:
+            step = self.options.speed_walk_m_s_sqrt_s * np.sqrt(self.options.speed_segment_s)
+            graph.add(gtsam.BetweenFactorVector(previous, key, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, step)))
+            start = estimate.atVector(previous) if estimate is not None and estimate.exists(previous) else np.array([mean])
+        values.insert(key, start)
+        self.last_speed_key = key
+
 
 class OnlineShip:
     """Incremental fixed-lag smoother (iSAM2 inside): memory and time per keyframe stay bounded over any voyage.
@@ -281,8 +324,9 @@ class OnlineShip:
         k = self.graph.k
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         # the constants and the current bias are re-stamped every keyframe so the window never drops them
-        for key in (R_KEY(k), self.graph.bias_key(frame.t_s), LEVER_ARM_KEY, SPEED_SCALE_KEY, GYRO_SCALE_KEY):
-            if v.exists(key) or self.estimate.exists(key):
+        for key in (R_KEY(k), self.graph.bias_key(frame.t_s), self.graph.last_speed_key, LEVER_ARM_KEY,
+                    SPEED_SCALE_KEY, GYRO_SCALE_KEY):
+            if key is not None and (v.exists(key) or self.estimate.exists(key)):
                 stamps.insert((key, frame.t_s))
         self.smoother.update(g, v, stamps)
         self.estimate = self.smoother.calculateEstimate()

@@ -151,7 +151,8 @@ class OnlineShipTracker:
         f_mean, noise_var = ship.averaged_specific_force(accel, n_average, n_noise)
         sigma = tilt_sigma_rad(noise_var[i], n_average, a_known if has_speed else None, f_mean[i],
                                self.graph.gravity_m_s2, self.options)
-        frame = Keyframe(float(t[i]), gyro[span], np.diff(t)[span], f_mean[i], A, a_known, has_speed, sigma)
+        frame = Keyframe(float(t[i]), gyro[span], np.diff(t)[span], f_mean[i], A, a_known, has_speed, sigma,
+                         float(np.mean(gyro[averaged, 2])))
         (roll, pitch, yaw), bias, cov = self.online.add(frame, covariance=True)
         # drop what no later keyframe needs: samples before this keyframe's derivative window
         keep = max(0, min(i, int(np.searchsorted(t, t[i] - 0.5 * self.options.angular_acceleration_window_s))))
