@@ -262,15 +262,12 @@ def test_real_turns_scale_agrees_with_the_magnetometer(log):
     """MPU-6050, two hand-made turns about one axis (sunsided, EUPL: read in place).  The graph's scale on that
     axis (gyro + accelerometer only, with the lever arm of a hand-held board) against the magnetometer's, within
     3 combined sigmas.  x and y turns carry gravity round the board: the accelerometer sizes them to about 1 %;
-    about z it sees the scale only through the board's small tilt while turning.  A board turned in the hand
-    travels nowhere: it has no speed through the water, so the vessel's unknown speed is left out."""
+    about z it sees the scale only through the board's small tilt while turning."""
     from selfcal.audit.ship_system import ShipAudit
-    from selfcal.graphs.ship import ShipGraphOptions
     from selfcal.io.importers import import_sunsided_mpu6050
     from selfcal.pipelines.ship import ship_inputs
     axis = TURNS[log]
-    audit = ShipAudit(ship_inputs(import_sunsided_mpu6050(SUNSIDED / log)),
-                      options=ShipGraphOptions(estimate_unknown_speed=False))
+    audit = ShipAudit(ship_inputs(import_sunsided_mpu6050(SUNSIDED / log)))
     candidates = {c.effect: c for c in audit.candidates()}
     effects = (candidates["lever_arm"], candidates["gyro_scale"])
     fit = audit.fit(effects)

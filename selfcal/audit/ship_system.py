@@ -49,12 +49,10 @@ class ShipAudit:
     folds = 2
     base_model = "attitude"
 
-    def __init__(self, inputs: ShipInputs, sensor: str = "imu0", keyframe_s: float = AUDIT_KEYFRAME_S,
-                 options: ShipGraphOptions | None = None):
-        """``options``: the base model's (a vessel's by default); the effects under test are switched by the audit."""
+    def __init__(self, inputs: ShipInputs, sensor: str = "imu0", keyframe_s: float = AUDIT_KEYFRAME_S):
         self.inputs, self.sensor = inputs, sensor
         self.base_effects = ()
-        self.options = replace(options or ShipGraphOptions(), keyframe_s=keyframe_s, estimate_lever_arm=False)
+        self.options = ShipGraphOptions(keyframe_s=keyframe_s, estimate_lever_arm=False)
         self.frames = keyframes_from_inputs(inputs, self.options)
         t = np.array([f.t_s for f in self.frames])
         half = 0.5 * (t[0] + t[-1])

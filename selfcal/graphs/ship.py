@@ -93,6 +93,7 @@ class ShipEstimate:
     lever_arm_m: np.ndarray | None = None  # estimated (final value), when in the graph
     speed_scale: float | None = None
     gyro_scale: np.ndarray | None = None
+    speed_m_s: np.ndarray | None = None  # (K,) the unknown speed at the keyframes, when in the graph
 
 
 def known_acceleration(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
@@ -359,22 +360,26 @@ class ShipSmoother:
         result = optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE)
         ypr = np.array([result.atRot3(R_KEY(k)).ypr() for k in range(len(self.keyframes))])
         bias = np.array([result.atVector(builder.bias_key(f.t_s)) for f in self.keyframes])
+        speed = [result.atVector(builder.speed_key(f.t_s))[0] for f in self.keyframes if builder.unknown_speed(f)]
         return ShipEstimate(self._times(), ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, time.perf_counter() - start,
-                            *_constants(result))
+                            *_constants(result), np.array(speed) if speed else None)
 
     def online(self, lag_s: float = 60.0) -> ShipEstimate:
         """The filtered attitudes (each as first solved), replayed through :class:`OnlineShip`."""
         import time
         start = time.perf_counter()
         online = OnlineShip(self._graph(), lag_s)
-        attitudes, biases = [], []
+        attitudes, biases, speeds = [], [], []
         for frame in self.keyframes:
             rpy, bias, _ = online.add(frame)
             attitudes.append(rpy)
             biases.append(bias)
+            if online.graph.unknown_speed(frame):
+                speeds.append(online.estimate.atVector(online.graph.last_speed_key)[0])
         rpy = np.array(attitudes)
         return ShipEstimate(self._times(), rpy[:, 0], rpy[:, 1], rpy[:, 2], np.array(biases),
-                            time.perf_counter() - start, *_constants(online.estimate))
+                            time.perf_counter() - start, *_constants(online.estimate),
+                            np.array(speeds) if speeds else None)
 
     def _times(self) -> np.ndarray:
         return np.array([f.t_s for f in self.keyframes])
