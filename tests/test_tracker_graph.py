@@ -42,23 +42,33 @@ def test_online_errors_agree_with_reported_covariance(quiet_run):
     assert res.counts["rejected"] <= 5  # gate at 1e-4 per test: ~1 expected over ~2400 tests
 
 
-def test_gates_reject_spikes_and_jumps_and_detect_a_stuck_inclinometer():
+@pytest.mark.parametrize("frozen_samples", [10, 0])
+def test_gates_reject_spikes_and_jumps_and_detect_a_stuck_inclinometer(frozen_samples):
+    """A stuck output is caught by the stuck-output test (10 identical samples at 10 Hz: within 1.5 s; readmitted
+    with its first moving sample); with that test off (a sensor quantised coarser than its noise), by the
+    eigenvalue detector (its residuals lost their noise: lambda_min too small) within 10 s, readmitted within 10 s
+    of moving again."""
     sc = TrackerScenario(duration_s=48.0, seed=6, burst_rate_per_min=0.0, faults=[
         Fault("incl0", "spike", 10.0, 10.05, np.radians(1.0), 0),
         Fault("tracker0", "jump", 15.0, 15.06, 0.02, 0, (0.0, 1.0, 0.0)),
         Fault("incl0", "stuck", 22.0, 38.0)])
     rec = sc.measurements(seed=3)
-    res = smooth_tracker(rec, mode="fixed-lag")
+    options = TrackerOptions(gating=GatingOptions(frozen_samples=frozen_samples))
+    res = smooth_tracker(rec, mode="fixed-lag", options=options)
     t = lambda d: (d["t_ns"] - sc.t0_ns) * 1e-9  # noqa: E731
     rejected = [(d["sensor"], round(t(d), 2)) for d in res.decisions if d["decision"] == "reject"]
     assert ("incl0", 10.0) in rejected
     assert sum(1 for s, ti in rejected if s == "tracker0" and 15.0 <= ti < 15.06) == 3
     for d in res.decisions:  # every decision carries its statistic and threshold
         assert np.isfinite(d["statistic"]) and np.isfinite(d["threshold"])
-    alarms = [t(d) for d in res.decisions if d["test"] in ("eigen", "bias_drift") and d["decision"] == "fault"]
-    assert alarms and 22.0 < alarms[0] < 32.0, alarms  # a stuck output lost its noise: lambda_min too small
-    recovered = [t(d) for d in res.decisions if d["test"] == "eigen" and d["decision"] == "recovered"]
-    assert recovered and 38.0 < recovered[-1] < 48.0, recovered
+    alarms = [(d["test"], t(d)) for d in res.decisions if d["decision"] == "fault"]
+    recovered = [(d["test"], t(d)) for d in res.decisions if d["decision"] == "recovered"]
+    if frozen_samples:
+        assert alarms and alarms[0][0] == "frozen" and 22.0 < alarms[0][1] < 23.5, alarms
+        assert recovered and recovered[-1][0] == "frozen" and 38.0 <= recovered[-1][1] < 38.2, recovered
+    else:
+        assert alarms and alarms[0][0] in ("eigen", "bias_drift") and 22.0 < alarms[0][1] < 32.0, alarms
+        assert recovered and recovered[-1][0] == "eigen" and 38.0 < recovered[-1][1] < 48.0, recovered
     # ungated, the frozen reading holds the attitude back while the machine steers: gated must do better
     ungated = smooth_tracker(rec, mode="fixed-lag", gating=False)
     sel = lambda r: ((r.t_ns - sc.t0_ns) * 1e-9 > 22.0) & ((r.t_ns - sc.t0_ns) * 1e-9 < 38.0)  # noqa: E731

@@ -25,6 +25,9 @@ Fault gating (every decision is returned with its statistic):
    window of its (monitored, not added) residuals passes the same test.
    Rejected inclinometer samples go to the detector too, winsorised onto the gate's boundary (unless the
    accelerometer shows vibration starting), so a ramp the gate keeps catching is declared within seconds.
+   A stuck inclinometer (its output repeated exactly, ``GatingOptions.frozen_samples`` times) is held out at
+   once, its recent factors removed the same way, and readmitted with its first moving sample: a working sensor's
+   noise never repeats both axes, and the detector's window would take seconds to see it.
 3. Vibration is modelled, not alarmed: the inclinometer factor's covariance grows with the vibration the
    accelerometer shows over a window centred on the sample (:meth:`TrackerEstimator._vibration_covariance`;
    the sample enters provisionally at once and is re-decided when the window is complete) and with the
@@ -140,6 +143,14 @@ class GatingOptions:
     # gyro-only attitude over a 3 s window wanders ~3 inclinometer sigmas, its pseudo-innovations are strongly
     # correlated and the Wishart threshold does not hold: measured false alarms every few seconds)
     recursor: bool = False
+    # a stuck inclinometer repeats its last output exactly; a working one cannot, its noise (0.005 deg) being larger
+    # than its resolution: with noise sigma >= the step q, both axes repeat with P <= (q / (2 sqrt(pi) sigma))^2
+    # = 0.08 per sample, so 10 in a row (1 s at 10 Hz) is a false alarm every 10^6 h.  0 switches the test off
+    # (a sensor quantised coarser than its noise repeats honestly)
+    frozen_samples: int = 10
+
+
+UNGATED = GatingOptions(chi2=False, eigen=False, frozen_samples=0)  # every sample enters (the vibration model stays)
 
 
 @dataclass(frozen=True)
@@ -324,6 +335,8 @@ class TrackerEstimator:
         self._incl_up_last, self._incl_t_last, self._incl_dt_s = None, None, None
         self._vibration_hint = False
         self._fault_t_ns: dict[str, int] = {}
+        self._incl_previous_up, self._frozen_count, self._frozen_fault = None, 0, False
+        self._stuck_until_ns = 0  # the first moving sample after a stuck spell (samples before it are decided later)
         self._grace_until_ns: dict[str, int] = {}
         self._bias_increments: deque = deque(maxlen=g.bias_drift_window)
         self._carried_removals: list[int] = []  # factor indices to remove at the next update
@@ -755,10 +768,12 @@ class TrackerEstimator:
                     "threshold": threshold}
         detector = self.detectors.get(tag)
         self._decisions_now.append(decision)
-        if self.faulty[sensor]:
+        # a stuck inclinometer is readmitted by the stuck-output test alone, from its first moving sample on
+        stuck = sensor == "incl0" and (self._frozen_fault or t_ns < self._stuck_until_ns)
+        if self.faulty[sensor] or stuck:
             decision["decision"] = "held_out"
             self.counts["held_out"] += 1
-            if detector is not None:  # monitored while held out: readmitted when a full window looks healthy
+            if detector is not None and not stuck:  # monitored while held out: readmitted when a window looks healthy
                 lam = detector.push(m_nu, m_inflated)
                 held_s = (t_ns - self._fault_t_ns.get(sensor, t_ns)) * 1e-9
                 healthy = lam is not None and detector.certifies_recovery(lam)
@@ -828,18 +843,47 @@ class TrackerEstimator:
         sensor = tag.split("/")[0]
         lam = detector.push(nu, inflated)
         if lam is not None and not detector.healthy(lam) and not any(self.faulty.values()):
-            # single-fault assumption: while one sensor is held out the others' residuals carry its
-            # pull on the state, so their windows restart instead of accusing them in cascade
-            self.faulty[sensor] = True
-            self._fault_t_ns[sensor] = int(t_ns)
-            for d in self.detectors.values():
-                d.reset()
-            self._decisions_now.append({"t_ns": int(t_ns), "sensor": tag, "test": "eigen", "statistic": lam,
-                                        "threshold": detector.threshold, "lambda_min": detector.last_min,
-                                        "lower_threshold": detector.lower, "decision": "fault"})
+            self._declare_fault(tag, t_ns, k, {"test": "eigen", "statistic": lam, "threshold": detector.threshold,
+                                               "lambda_min": detector.last_min, "lower_threshold": detector.lower})
             log.info("%s soft fault (lambda_max %.1f vs %.1f, lambda_min %.2f vs %.2f)", tag, lam,
                      detector.threshold, detector.last_min, detector.lower)
-            self._to_remove.extend(self._removable(sensor, k))
+
+    def _declare_fault(self, tag: str, t_ns: int, k: int, test: dict) -> None:
+        """Hold ``tag``'s sensor out and remove its factors still in the smoother; log ``test`` as the decision."""
+        # single-fault assumption: while one sensor is held out the others' residuals carry its pull on the
+        # state, so their windows restart instead of accusing them in cascade
+        sensor = tag.split("/")[0]
+        self.faulty[sensor] = True
+        self._fault_t_ns[sensor] = int(t_ns)
+        for d in self.detectors.values():
+            d.reset()
+        self._decisions_now.append({"t_ns": int(t_ns), "sensor": tag, **test, "decision": "fault"})
+        self._to_remove.extend(self._removable(sensor, k))
+
+    def _frozen_check(self, t_ns: int, up_B: np.ndarray, k: int) -> None:
+        """The inclinometer's stuck-output test (``GatingOptions.frozen_samples``): held out when its output
+        repeats exactly that many times, readmitted (to the chi-square gate) as soon as it moves again."""
+        n = self.options.gating.frozen_samples
+        if not n:
+            return
+        same = self._incl_previous_up is not None and np.array_equal(up_B, self._incl_previous_up)
+        self._incl_previous_up = up_B
+        self._frozen_count = self._frozen_count + 1 if same else 0
+        if self._frozen_count == n and not any(self.faulty.values()):
+            self._declare_fault("incl0", t_ns, k, {"test": "frozen", "statistic": n, "threshold": n})
+            self._frozen_fault = True
+            log.info("incl0 stuck: %d identical outputs", n + 1)
+        elif not same and self._frozen_fault:
+            self._frozen_fault = False
+            self._stuck_until_ns = int(t_ns)
+            self.faulty["incl0"] = False
+            for d in self.detectors.values():
+                d.reset()
+            held_s = (t_ns - self._fault_t_ns["incl0"]) * 1e-9
+            self._bias_drift_resume_ns = int(t_ns + 1e9 * self.options.gating.bias_drift_resettle_s)
+            self._decisions_now.append({"t_ns": int(t_ns), "sensor": "incl0", "test": "frozen", "statistic": 0,
+                                        "threshold": n, "decision": "recovered", "held_out_s": held_s})
+            log.info("incl0 moves again after %.0f s stuck", held_s)
 
     def _recursor_reset(self, R: np.ndarray, cov_rot: np.ndarray) -> None:
         self._rec_R, self._rec_cov = R.copy(), cov_rot.copy()
@@ -949,6 +993,7 @@ class TrackerEstimator:
                 continue
             for factor, tag in self._factor_for(m, k, nav_k):
                 if tag == "incl0":
+                    self._frozen_check(m.t_ns, m.z, k)
                     accepted.extend(self._provisional_inclinometer(m.t_ns, k, values, P_blocks, t_ns))
                     continue
                 stat, nu = self._innovation(factor, values, P_blocks)

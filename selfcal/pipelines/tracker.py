@@ -15,7 +15,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from selfcal.graphs.tracker import (GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions, batch_smooth)
+from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
+                                    batch_smooth)
 from selfcal.io.recording import GYRO_COLUMNS, ACCEL_COLUMNS, Recording, RecordingError
 
 log = logging.getLogger(__name__)
@@ -60,8 +61,7 @@ class OnlineTracker:
     def __init__(self, noise: SensorNoise | None = None, mode: str = "fixed-lag", gating: bool = True,
                  options: TrackerOptions | None = None):
         if options is None:
-            options = TrackerOptions(mode=mode, gating=GatingOptions() if gating else GatingOptions(chi2=False,
-                                                                                                 eigen=False))
+            options = TrackerOptions(mode=mode, gating=GatingOptions() if gating else UNGATED)
         self.estimator = TrackerEstimator(noise or SensorNoise(), options)
         self.ignored = 0
         self.latency_s: list[float] = []
@@ -148,7 +148,7 @@ def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = Tru
         raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
     meta = {name: s.meta for name, s in recording.sensors.items()}
     if options is None:
-        g = GatingOptions() if gating else GatingOptions(chi2=False, eigen=False)
+        g = GatingOptions() if gating else UNGATED
         options = TrackerOptions(mode="isam2" if mode == "isam2" else "fixed-lag", gating=g,
                                  keep_graph=(mode == "batch"))
     tracker = OnlineTracker(noise_from_meta(meta), options=options)
@@ -202,7 +202,7 @@ def estimator_for_audit(recording: Recording, keyframe_s: float = 0.2) -> Tracke
     # every sample enters: gating would hold out exactly the sensor whose calibration error the audit is to
     # find (a biased inclinometer disagrees with the camera); the vibration model stays
     options = TrackerOptions(mode="fixed-lag", keyframe_s=keyframe_s, keep_graph=True,
-                             gating=GatingOptions(chi2=False, eigen=False))
+                             gating=UNGATED)
     tracker = OnlineTracker(noise_from_meta(meta), options=options)
     for name, t, values in recording_events(recording):
         tracker.push(name, t, values)
