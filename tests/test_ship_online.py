@@ -39,3 +39,26 @@ def test_track_command_replays_a_ship_recording(tmp_path, capsys):
     first = json.loads(lines[0])
     assert set(first) >= {"t_ns", "position", "quaternion", "covariance"}
     assert len((tmp_path / "p.tum").read_text().splitlines()) >= len(lines)
+
+
+def test_live_tracker_without_a_speed_log_reports_the_speed_the_turns_show(tmp_path):
+    """Only the IMU is pushed (speed log and GPS left out): every output carries the unknown speed and its
+    sigma, and over the turns (|yaw rate| > 1 deg/s, once the first 10 s of the first have shown the speed) it
+    is within 5 % RMS of the truth, the accuracy the model grants a speed log (as the replayed smoother in
+    tests/test_ship_graph.py, on the same voyage)."""
+    scenario = ShipScenario(kind="turning", duration_s=600.0, seed=3)
+    scenario.write(tmp_path / "rec", seed=103)
+    rec = read_recording(tmp_path / "rec")
+    tracker = OnlineShipTracker({"imu0": rec.sensors["imu0"].meta})
+    outputs = [out for name, t_ns, values in replay(rec) if name == "imu0"
+               for out in tracker.push(name, t_ns, values)]
+    assert all("speed_m_s" in o and o["speed_sigma_m_s"] > 0 for o in outputs)
+    t_s = np.array([o["t_ns"] for o in outputs]) * 1e-9 - scenario.t0_ns * 1e-9
+    true_speed, _ = scenario.motion.speed(t_s)
+    _, _, (_, yaw_rate, _) = scenario.motion.euler(t_s)
+    turning = np.abs(yaw_rate) > np.radians(1.0)
+    shown = turning & (t_s > t_s[np.argmax(turning)] + 10.0)
+    assert shown.sum() > 200
+    speed = np.array([o["speed_m_s"] for o in outputs])
+    relative = np.sqrt(np.mean((speed[shown] - true_speed[shown]) ** 2)) / np.mean(true_speed[shown])
+    assert relative < 0.05, relative

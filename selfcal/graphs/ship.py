@@ -300,7 +300,8 @@ class ShipGraph:
             graph.add(gtsam.PriorFactorVector(key, np.array([mean]), gtsam.noiseModel.Isotropic.Sigma(1, sigma)))
             start = np.array([mean])
         else:
-            step = self.options.speed_walk_m_s_sqrt_s * np.sqrt(self.options.speed_segment_s)
+            segments = gtsam.Symbol(key).index() - gtsam.Symbol(previous).index()  # > 1 across a gap in the data
+            step = self.options.speed_walk_m_s_sqrt_s * np.sqrt(self.options.speed_segment_s * segments)
             graph.add(gtsam.BetweenFactorVector(previous, key, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, step)))
             start = estimate.atVector(previous) if estimate is not None and estimate.exists(previous) else np.array([mean])
         values.insert(key, start)

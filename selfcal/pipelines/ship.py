@@ -164,7 +164,14 @@ class OnlineShipTracker:
         return {"t_ns": int(round(t[i] * 1e9)), "position": [0.0, 0.0, 0.0], "quaternion": q.tolist(),
                 "covariance": covariance.tolist(), "faults": {},
                 "roll_rad": float(roll), "pitch_rad": float(pitch), "gyro_bias_rad_s": np.asarray(bias).tolist(),
-                "delay_s": t_ns_now * 1e-9 - float(t[i])}
+                "delay_s": t_ns_now * 1e-9 - float(t[i]),
+                **(self._unknown_speed() if self.graph.unknown_speed(frame) else {})}
+
+    def _unknown_speed(self) -> dict:
+        """The speed through the water the turns show (no speed source), with its marginal sigma."""
+        key = self.graph.last_speed_key
+        return {"speed_m_s": float(self.online.estimate.atVector(key)[0]),
+                "speed_sigma_m_s": float(np.sqrt(self.online.smoother.marginalCovariance(key)[0, 0]))}
 
 
 def _centred_slope(t_s: np.ndarray, x: np.ndarray, t0_s: float) -> np.ndarray:
