@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from selfcal.baselines.patent_003_drift import PatentDriftFilter, cutoff_between
+from selfcal.baselines.patent_003_drift import PatentDriftFilter, vessel_cutoff_hz
 from selfcal.pipelines.ship import ship_inputs
 from selfcal.graphs.ship import ShipGraphOptions, ShipSmoother
 from selfcal.sim.ship import ShipScenario
@@ -34,15 +34,9 @@ def errors(t_est, roll, pitch, scenario):
 
 
 def patent_cutoff_hz(scenario) -> float:
-    """The patent's rule with the vessel's own periods (a user knows them): above the heave frequency, below
-    the roll/pitch frequencies.  Where the swell is not slower than the roll (calm, turning), the rule cannot be
-    met; the cutoff then sits an octave below the slowest roll/pitch period."""
+    """The patent's rule with the vessel's own periods (a user knows them): :func:`vessel_cutoff_hz`."""
     motion = scenario.motion
-    roll_s = float(max(np.max(motion.roll.period_s), np.max(motion.pitch.period_s)))
-    try:
-        return cutoff_between(float(np.min(motion.heave.period_s)), roll_s)
-    except ValueError:
-        return 0.5 / roll_s
+    return vessel_cutoff_hz(motion.heave.period_s, np.concatenate([motion.roll.period_s, motion.pitch.period_s]))
 
 
 def run_scenario(kind: str, duration_s: float, remove_known: bool, seed: int = 3):

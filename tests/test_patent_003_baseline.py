@@ -189,3 +189,10 @@ def test_rolling_heaving_vessel_with_bias_tracks_true_roll():
     assert np.max(np.abs(res.pitch[late] - pitch0)) < tol
     raw = p.integrate_euler_angles(t, gyro, (0.0, pitch0, 0.0))
     assert np.max(np.abs(raw[late, 0] - roll[late])) > 10 * tol
+
+
+def test_vessel_cutoff_uses_fastest_heave_and_slowest_roll_or_falls_an_octave_below():
+    # swell slower than the roll: claim 1's geometric mean of the fastest heave (40 s) and slowest roll (12 s)
+    assert p.vessel_cutoff_hz([60.0, 40.0], [8.0, 12.0]) == pytest.approx(1.0 / np.sqrt(40.0 * 12.0))
+    # swell (6 s) faster than the slowest roll (20 s): no cutoff between, an octave below 1/20 Hz
+    assert p.vessel_cutoff_hz([6.0, 10.0], [5.0, 20.0]) == pytest.approx(0.025)

@@ -75,15 +75,16 @@ def test_online_isam2_tracks_like_the_batch(voyage):
 def turning_without_speed_source():
     """A simulated turning voyage (turns of 2.7-3.3 deg/s at 11-13 m/s: a centrifugal tilt of about 4 deg) whose
     speed log is not used: batch and online estimates, and the patent's filter without its known accelerations."""
-    from selfcal.baselines.patent_003_drift import PatentDriftFilter
+    from selfcal.baselines.patent_003_drift import PatentDriftFilter, vessel_cutoff_hz
     from selfcal.graphs.ship import ShipGraphOptions
     from selfcal.pipelines.ship import ship_inputs
     from selfcal.sim.ship import ShipScenario
     scenario = ShipScenario(kind="turning", duration_s=600.0, seed=3)
     inputs = ship_inputs(scenario.perturbed_measurements(103))
     smoother = ShipSmoother(inputs, ShipGraphOptions(remove_known_acceleration=False))
-    roll_s = float(max(np.max(scenario.motion.roll.period_s), np.max(scenario.motion.pitch.period_s)))
-    patent = PatentDriftFilter(0.5 / roll_s, remove_known_acceleration=False).run(
+    motion = scenario.motion
+    cutoff = vessel_cutoff_hz(motion.heave.period_s, np.concatenate([motion.roll.period_s, motion.pitch.period_s]))
+    patent = PatentDriftFilter(cutoff, remove_known_acceleration=False).run(
         inputs.t_s, inputs.gyro_rad_s, inputs.accel_m_s2, inputs.speed_m_s)
     return scenario, inputs, {"batch": smoother.batch(), "online": smoother.online()}, patent
 

@@ -108,6 +108,17 @@ def cutoff_between(heave_period_s: float, roll_period_s: float) -> float:
     return 1.0 / math.sqrt(heave_period_s * roll_period_s)
 
 
+def vessel_cutoff_hz(heave_periods_s, roll_periods_s) -> float:
+    """The cutoff a user sets from the vessel's own periods: claim 1's rule (:func:`cutoff_between`) on the
+    fastest heave and the slowest roll/pitch period.  Where the swell is not slower than the roll (calm seas,
+    turning), the rule cannot be met; the cutoff then sits an octave below the slowest roll/pitch period."""
+    roll_s = float(max(roll_periods_s))
+    try:
+        return cutoff_between(float(min(heave_periods_s)), roll_s)
+    except ValueError:
+        return 0.5 / roll_s
+
+
 def default_gains(cutoff_hz: float) -> tuple[float, float]:
     """PI gains ``(kp, ki)`` = ``(1, 2 pi f_c)``: closed-loop double pole at ``-2 pi f_c`` (module docstring)."""
     return 1.0, 2.0 * math.pi * cutoff_hz
