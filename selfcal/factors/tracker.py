@@ -9,7 +9,6 @@ measurement                factor                                           erro
 IMU between keyframes      ``gtsam.CombinedImuFactor``                      GTSAM's (15)
 prism position (tracker)   ``gtsam.GPSFactorArm`` (lever arm r_P_B)          ``p + R r - z`` (m, 3)
 inclinometer               ``gtsam.AttitudeFactorPose3``                    Unit3 error of up (rad, 2)
-inclinometer, drifting     :func:`drifting_inclinometer_factor` (custom)    the same, mounting turned back
 prism velocity (tracker)   :func:`prism_velocity_factor` (custom)           ``v + R (w x r) - z`` (m/s, 3)
 beam spot (camera)         :func:`beam_bearing_factor` (custom)             bearing error (rad, 2)
 =========================  ===============================================  ==========================
@@ -18,9 +17,6 @@ The audit (:mod:`selfcal.audit.tracker_system`) rebuilds the tracker and inclino
 effects as variables: :func:`calibrated_prism_factor` (lever-arm correction, clock offset; one block of samples
 per keyframe), :func:`calibrated_prism_velocity_factor` (clock offset), :func:`calibrated_inclinometer_factor`
 (bias, scale, acceleration sensitivity, in roll/pitch).
-
-During a soft fault the online estimator keeps the inclinometer with :func:`drifting_inclinometer_factor`: its
-mounting drifts linearly in time, one drift variable per fault episode.
 
 The custom factors return the unwhitened error, fill right-perturbation Jacobians only when ``H`` is given,
 and call :mod:`selfcal.models.tracker` for the physics.
@@ -224,25 +220,3 @@ def calibrated_inclinometer_factor(noise, pose_key: int, z_rad, disturbance_rad,
         return pred - z
 
     return gtsam.CustomFactor(noise, keys, error)
-
-
-def drifting_inclinometer_factor(noise, pose_key: int, drift_key: int, up_B, dt_s: float) -> gtsam.CustomFactor:
-    """Inclinometer whose mounting drifts during a fault episode (a bias ramp): the drift variable
-    ``(m0_x, m0_y, mdot_x, mdot_y)`` (rad, rad/s) gives the mounting rotation ``m = m0 + dt_s mdot`` at the sample,
-    ``dt_s`` after the episode's reference time (:func:`selfcal.models.tracker.drifting_up_error`).  The error
-    coordinates and the noise model are the nominal inclinometer factor's."""
-    u = np.asarray(up_B, dtype=float)
-    basis = UP_W.basis()
-
-    def error(this, values, H):
-        R = values.atPose3(pose_key).rotation().matrix()
-        d = values.atVector(drift_key)
-        mount = d[:2] + dt_s * d[2:]
-        if H is None:
-            return mt.drifting_up_error(R, u, mount, basis)
-        e, J = mt.drifting_up_error(R, u, mount, basis, with_jacobian=True)
-        H[0] = np.hstack([J["rotation"], np.zeros((2, 3))])
-        H[1] = np.hstack([J["mount"], dt_s * J["mount"]])
-        return e
-
-    return gtsam.CustomFactor(noise, [pose_key, drift_key], error)

@@ -166,28 +166,6 @@ def tilt_of_rotation(R_W_B, with_jacobian: bool = False):
     return z, D @ so3.hat(u)
 
 
-def drifting_up_error(R_W_B, up_B, mount_rad, up_basis_W, with_jacobian: bool = False):
-    """The inclinometer factor's error (rad, 2) when the sensor's reading is offset by a mounting rotation
-    ``mount_rad = (m_x, m_y)`` about the body x and y axes: a soft fault (a bias ramp) modelled instead of held out.
-
-    ``e = B^T R_W_B u'`` with ``u' = Exp(m) up_B``, ``m = (m_x, m_y, 0)``: the measured up direction turned back by
-    the offset, then into the world and onto ``B = up_basis_W`` (3, 2), the tangent basis of the world's up on which
-    GTSAM's ``AttitudeFactor`` expresses its error (at ``m = 0`` the two errors are equal).  A roll reading offset by
-    ``b`` is exactly ``m_x = b`` (``up(r + b, p) = Exp(-b e_x) up(r, p)``); a pitch offset ``b`` is ``m_y = b`` up to
-    a rotation about the body z axis of ``b`` times the roll, which moves ``u`` by third-order terms.  Jacobians on
-    the rotation's right perturbation ``R Exp(w)``: ``-B^T R [u']x``; on ``m``
-    (``Exp(m + d) = Exp(m) Exp(J_r(m) d)``): ``-B^T R Exp(m) [up_B]x J_r(m)``, first two columns.
-    """
-    m = np.array([mount_rad[0], mount_rad[1], 0.0])
-    R, B, up = np.asarray(R_W_B, dtype=float), np.asarray(up_basis_W, dtype=float), np.asarray(up_B, dtype=float)
-    R_m = so3.exp(m)
-    u = R_m @ up
-    e = B.T @ R @ u
-    if not with_jacobian:
-        return e
-    return e, {"rotation": -B.T @ R @ so3.hat(u), "mount": -(B.T @ R @ R_m @ so3.hat(up) @ so3.right_jacobian(m))[:, :2]}
-
-
 def inclinometer_reading(R_W_B, disturbance_rad, bias_rad=np.zeros(2), scale: float = 0.0,
                          accel_sensitivity: float = 0.0, with_jacobian: bool = False):
     """Predicted (roll, pitch) reading (rad) of an inclinometer with calibration errors.
