@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from selfcal.baselines.patent_000_encoder import patent_calibration, patent_measure
-from selfcal.graphs import encoder as ge
-from selfcal.graphs import encoder_durable as ged
+from selfcal.baselines.encoder import patent_calibration, patent_measure
+from selfcal.graphs.encoder import calibration as ge
+from selfcal.graphs.encoder import durable as ged
 from selfcal.io.atomic import atomic_write_text
 from selfcal.models import encoder as enc
 from selfcal.pipelines import encoder as pe

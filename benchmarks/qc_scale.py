@@ -30,7 +30,7 @@ import yaml
 
 from selfcal.cli import QC_EXIT_CODES, main as selfcal_main
 from selfcal.io.pointcloud import write_point_cloud, write_triangle_mesh
-from selfcal.sim.qc_artefact import PlateWithSpheres
+from selfcal.sim.qc import PlateWithSpheres
 
 import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
 

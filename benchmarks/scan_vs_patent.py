@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from selfcal.baselines.patent_001_scan import patent_two_stage
+from selfcal.baselines.scan import patent_two_stage
 from selfcal.graphs import scan as gs
 from selfcal.io.recording import read_recording
 from selfcal.models import scan as ms
-from selfcal.models.sphere import fit_sphere
+from selfcal.core.sphere import fit_sphere
 from selfcal.pipelines.scan import read_scan, scan_problem
 from selfcal.sim.scan import ScanScenario, simulate_scan, write_scan_recording
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from selfcal.baselines.patent_003_drift import PatentDriftFilter, vessel_cutoff_hz
+from selfcal.baselines.ship import PatentDriftFilter, vessel_cutoff_hz
 from selfcal.pipelines.ship import ship_inputs
 from selfcal.graphs.ship import ShipGraphOptions, ShipSmoother
 from selfcal.sim.ship import ShipScenario

@@ -20,10 +20,10 @@ import numpy as np
 from scipy import stats
 
 from selfcal.io.pointcloud import LoadedCloud, cloud_from_points
-from selfcal.models.sphere import algebraic_sphere, fit_sphere, sphere_residuals_m
-from selfcal.pipelines.qc import run_qc
-from selfcal.pipelines.qc_spec import QCSpec
-from selfcal.sim.qc_artefact import PlateWithSpheres
+from selfcal.core.sphere import algebraic_sphere, fit_sphere, sphere_residuals_m
+from selfcal.pipelines.qc.checks import run_qc
+from selfcal.pipelines.qc.spec import QCSpec
+from selfcal.sim.qc import PlateWithSpheres
 
 import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
 

@@ -19,9 +19,9 @@ import numpy as np
 from scipy import stats
 
 from selfcal.io.pointcloud import read_point_cloud
-from selfcal.models.sphere import algebraic_sphere, sphere_residuals_m
-from selfcal.pipelines.qc import run_qc
-from selfcal.pipelines.qc_spec import QCSpec
+from selfcal.core.sphere import algebraic_sphere, sphere_residuals_m
+from selfcal.pipelines.qc.checks import run_qc
+from selfcal.pipelines.qc.spec import QCSpec
 
 import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
 

@@ -198,7 +198,7 @@ def _cmd_calibrate_encoder(args) -> None:
 
 
 def _cmd_measure_encoder(args) -> None:
-    from selfcal.io.encoder_recording import EncoderRecordingError, write_angles_csv
+    from selfcal.io.encoder import EncoderRecordingError, write_angles_csv
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.encoder import measure_encoder
     try:
@@ -251,9 +251,9 @@ QC_EXIT_CODES = {"pass": 0, "reported": 0, "fail": 3, "incomplete": 4}  # 1 is a
 def _cmd_qc(args) -> int:
     from selfcal.io.atomic import atomic_write_text
     from selfcal.io.pointcloud import read_point_cloud, read_triangle_mesh
-    from selfcal.pipelines.qc import run_qc
-    from selfcal.pipelines.qc_report import write_reports
-    from selfcal.pipelines.qc_spec import QCSpec
+    from selfcal.pipelines.qc.checks import run_qc
+    from selfcal.pipelines.qc.report import write_reports
+    from selfcal.pipelines.qc.spec import QCSpec
     if not (args.report or args.markdown or args.json):
         raise UsageError("nothing to write: give --report OUT.html, --markdown OUT.md and/or --json OUT.json")
     spec = QCSpec.from_yaml(args.spec) if args.spec else QCSpec()

@@ -26,10 +26,10 @@ import pytest
 from scipy.stats import chi2
 
 from selfcal.audit.engine import run_audit
-from selfcal.audit.imu_pair_system import ImuPairAudit
-from selfcal.audit.imu_system import ImuIntrinsicsAudit
+from selfcal.audit.imu_pair import ImuPairAudit
+from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
 from selfcal.pipelines.audit import audit_recording
-from selfcal.sim.imu_scenarios import AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.sim.imu import AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
 
 WHITE = ImuNoise(accelerometer_random_walk=0.0, gyroscope_random_walk=0.0)

@@ -15,9 +15,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from selfcal.cli import main
-from selfcal.graphs.imu_intrinsics import MIN_POSES_FULL_ACCEL
+from selfcal.graphs.imu import MIN_POSES_FULL_ACCEL
 from selfcal.io.recording import read_recording
-from selfcal.sim.imu_scenarios import ImuNoise, ImuPairScenario, ImuScenario
+from selfcal.sim.imu import ImuNoise, ImuPairScenario, ImuScenario
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -14,10 +14,10 @@ import pytest
 import yaml
 from scipy.stats import chi2
 
-from selfcal.baselines.patent_000_encoder import patent_calibration, patent_measure
+from selfcal.baselines.encoder import patent_calibration, patent_measure
 from selfcal.cli import main
-from selfcal.graphs import encoder as ge
-from selfcal.io.encoder_recording import EncoderRecordingError
+from selfcal.graphs.encoder import calibration as ge
+from selfcal.io.encoder import EncoderRecordingError
 from selfcal.io.recording import read_recording
 from selfcal.models import encoder as enc
 from selfcal.pipelines import encoder as pe

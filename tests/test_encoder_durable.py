@@ -31,8 +31,8 @@ import yaml
 from scipy.stats import chi2
 
 from selfcal.cli import main
-from selfcal.graphs import encoder as ge
-from selfcal.graphs import encoder_durable as ged
+from selfcal.graphs.encoder import calibration as ge
+from selfcal.graphs.encoder import durable as ged
 from selfcal.pipelines import encoder as pe
 from selfcal.sim.encoder import EncoderScenario
 

@@ -8,7 +8,7 @@ import pytest
 
 from factor_checks import assert_factor_jacobians
 from selfcal.factors import encoder as fenc
-from selfcal.graphs import encoder as ge
+from selfcal.graphs.encoder import calibration as ge
 from selfcal.models import encoder as enc
 from selfcal.sim.encoder import EncoderScenario
 

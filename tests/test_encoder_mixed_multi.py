@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from selfcal.baselines.patent_000_encoder import patent_calibration
-from selfcal.graphs import encoder as ge
+from selfcal.baselines.encoder import patent_calibration
+from selfcal.graphs.encoder import calibration as ge
 from selfcal.pipelines import encoder as pe
 from selfcal.sim.encoder import EncoderScenario, nominal_aperture
 

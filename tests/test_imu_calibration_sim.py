@@ -8,10 +8,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from selfcal.graphs.solve import DegenerateDataError
+from selfcal.core.solve import DegenerateDataError
 from selfcal.models.imu import STANDARD_GRAVITY_M_S2, upper_triangular_entries
 from selfcal.pipelines.imu_calibration import calibrate_imu, calibrate_imu_pair
-from selfcal.sim.imu_scenarios import ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.sim.imu import ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory, Trajectory, TrajectorySample
 
 RATE_HZ = 100.0

@@ -5,7 +5,8 @@ import pytest
 
 from factor_checks import assert_factor_jacobians
 from selfcal.factors import imu as fimu
-from selfcal.models import imu, so3
+from selfcal.models import imu
+from selfcal.core import so3
 
 G = 9.81
 SEEDS = [1, 2, 3, 4]

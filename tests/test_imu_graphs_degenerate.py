@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from selfcal.graphs import imu_intrinsics as gi
+from selfcal.graphs import imu as gi
 from selfcal.graphs import imu_pair as gp
-from selfcal.graphs.solve import DegenerateDataError
+from selfcal.core.solve import DegenerateDataError
 
 G = 9.81
 

@@ -3,9 +3,10 @@ import numpy as np
 from scipy.stats import chi2
 
 from selfcal.factors.imu import symmetric_gain
-from selfcal.models import imu, so3
+from selfcal.models import imu
+from selfcal.core import so3
 from selfcal.pipelines.imu_calibration import calibrate_imu_pair
-from selfcal.sim.imu_scenarios import ImuNoise, ImuPairScenario
+from selfcal.sim.imu import ImuNoise, ImuPairScenario
 from selfcal.sim.trajectories import HandheldTrajectory
 
 NOISE = ImuNoise(accelerometer_random_walk=0.0, gyroscope_random_walk=0.0)

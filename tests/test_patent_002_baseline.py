@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from selfcal.baselines import patent_002_rotation as p
+from selfcal.baselines import imu_pair as p
 
 G = 9.81
 

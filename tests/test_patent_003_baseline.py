@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from selfcal.baselines import patent_003_drift as p
+from selfcal.baselines import ship as p
 
 G = p.G_M_S2
 FS_HZ = 50.0

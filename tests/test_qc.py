@@ -7,10 +7,10 @@ import open3d as o3d
 import pytest
 
 from selfcal.io.pointcloud import LoadedCloud, cloud_from_points, write_point_cloud, write_triangle_mesh
-from selfcal.pipelines.qc import run_qc, signed_distances_to_mesh, trimmed_range
-from selfcal.pipelines.qc_report import deviation_png, render_html, render_markdown
-from selfcal.pipelines.qc_spec import QCSpec, QCSpecError
-from selfcal.sim.qc_artefact import PlateWithSpheres
+from selfcal.pipelines.qc.checks import run_qc, signed_distances_to_mesh, trimmed_range
+from selfcal.pipelines.qc.report import deviation_png, render_html, render_markdown
+from selfcal.pipelines.qc.spec import QCSpec, QCSpecError
+from selfcal.sim.qc import PlateWithSpheres
 
 SIGMA = 0.0002  # point noise of the simulated scans, m
 ART = PlateWithSpheres()

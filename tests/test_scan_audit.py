@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from selfcal.audit.engine import run_audit
-from selfcal.audit.scan_system import ScanAudit
+from selfcal.audit.scan import ScanAudit
 from scan_helpers import scan_data
 from selfcal.pipelines.scan import scan_problem
 from selfcal.sim.scan import ScanScenario, simulate_scan

@@ -7,7 +7,7 @@ import pytest
 from factor_checks import assert_factor_jacobians
 from selfcal.factors import scan as fs
 from selfcal.models import scan as ms
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.sim.scan import ScanScenario, simulate_scan
 
 

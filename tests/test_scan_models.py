@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from selfcal.models import scan as ms
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.sim.scan import ScanScenario, simulate_scan
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from selfcal.graphs import scan as gs
-from selfcal.graphs.solve import DegenerateDataError
+from selfcal.core.solve import DegenerateDataError
 from selfcal.io.recording import RecordingError, read_recording
-from selfcal.models.sphere import fit_sphere
+from selfcal.core.sphere import fit_sphere
 from selfcal.pipelines.scan import inertial_only_points, read_scan, scan_problem, smooth_scan
 from selfcal.sim.scan import ScanScenario, simulate_scan, write_scan_recording
 
@@ -88,7 +88,7 @@ def test_nonfinite_points_are_dropped(recording, tmp_path):
 def test_patent_baseline_runs_and_is_not_better(recording):
     """The patent's two-stage procedure on the same set B: a real estimate (moves the terms off zero), and
     the joint graph's sphere spacing is at least as good."""
-    from selfcal.baselines.patent_001_scan import patent_two_stage
+    from selfcal.baselines.scan import patent_two_stage
     sim, rec, _ = recording
     data = read_scan(rec)
     problem = scan_problem(data)

@@ -5,7 +5,7 @@ import pytest
 from scipy import stats
 
 from selfcal.audit.engine import run_audit
-from selfcal.audit.ship_system import ShipAudit
+from selfcal.audit.ship import ShipAudit
 from selfcal.pipelines.ship import ship_inputs
 from selfcal.sim.ship import ShipScenario
 

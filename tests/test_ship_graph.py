@@ -47,7 +47,7 @@ def _last_bias_sigma(inputs):
     """Marginal sigma (rad/s) of the last bias segment in the batch graph the smoother solves."""
     import gtsam
     from selfcal.graphs.ship import ShipGraph, ShipGraphOptions, keyframes_from_inputs
-    from selfcal.graphs.solve import marginal_covariances, optimize
+    from selfcal.core.solve import marginal_covariances, optimize
     options = ShipGraphOptions()
     frames = keyframes_from_inputs(inputs, options)
     builder = ShipGraph(options, inputs.gravity_m_s2, inputs.gyro_noise_density, inputs.gyro_random_walk)
@@ -75,7 +75,7 @@ def test_online_isam2_tracks_like_the_batch(voyage):
 def turning_without_speed_source():
     """A simulated turning voyage (turns of 2.7-3.3 deg/s at 11-13 m/s: a centrifugal tilt of about 4 deg) whose
     speed log is not used: batch and online estimates, and the patent's filter without its known accelerations."""
-    from selfcal.baselines.patent_003_drift import PatentDriftFilter, vessel_cutoff_hz
+    from selfcal.baselines.ship import PatentDriftFilter, vessel_cutoff_hz
     from selfcal.graphs.ship import ShipGraphOptions
     from selfcal.pipelines.ship import ship_inputs
     from selfcal.sim.ship import ShipScenario

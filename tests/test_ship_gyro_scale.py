@@ -10,7 +10,8 @@ from scipy import stats
 from factor_checks import assert_factor_jacobians, make_values
 from selfcal.factors.ship import gyro_scale_rotation_factor
 from selfcal.graphs.ship import (B_KEY, GYRO_SCALE_KEY, R_KEY, Keyframe, ShipGraph, ShipGraphOptions)
-from selfcal.models import ship, so3
+from selfcal.models import ship
+from selfcal.core import so3
 from selfcal.sim.ship import ShipScenario
 
 RI, RJ, B, S = gtsam.symbol("r", 0), gtsam.symbol("r", 1), gtsam.symbol("b", 0), gtsam.symbol("s", 0)
@@ -263,7 +264,7 @@ def test_real_turns_scale_agrees_with_the_magnetometer(log):
     axis (gyro + accelerometer only, with the lever arm of a hand-held board) against the magnetometer's, within
     3 combined sigmas.  x and y turns carry gravity round the board: the accelerometer sizes them to about 1 %;
     about z it sees the scale only through the board's small tilt while turning."""
-    from selfcal.audit.ship_system import ShipAudit
+    from selfcal.audit.ship import ShipAudit
     from selfcal.io.importers import import_sunsided_mpu6050
     from selfcal.pipelines.ship import ship_inputs
     axis = TURNS[log]

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from selfcal.baselines.patent_003_drift import PatentDriftFilter
+from selfcal.baselines.ship import PatentDriftFilter
 from selfcal.graphs.ship import ShipGraphOptions, ShipSmoother
 from selfcal.io.importers import import_sunsided_mpu6050
 from selfcal.models.ship import tilt_from_specific_force

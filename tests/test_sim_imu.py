@@ -4,8 +4,9 @@ import pytest
 import yaml
 
 from selfcal.io.recording import read_recording, read_truth
-from selfcal.models import imu, so3
-from selfcal.sim.imu_scenarios import (AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, TemperatureProfile,
+from selfcal.models import imu
+from selfcal.core import so3
+from selfcal.sim.imu import (AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, TemperatureProfile,
                                        random_intrinsics)
 from selfcal.sim.trajectories import E_Z, HandheldTrajectory, MultiPositionTrajectory
 

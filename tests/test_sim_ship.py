@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.sim.ship import DEG_H, ShipScenario
 
 

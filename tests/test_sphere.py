@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from selfcal.models.sphere import (SphereNotFoundError, algebraic_sphere, fit_sphere, ransac_sphere,
+from selfcal.core.sphere import (SphereNotFoundError, algebraic_sphere, fit_sphere, ransac_sphere,
                                    sphere_coverage, sphere_residuals_and_jacobians, sphere_residuals_m)
 
 CENTER = np.array([1.2, -0.4, 2.5])

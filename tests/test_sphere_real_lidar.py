@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from selfcal.io.pointcloud import read_point_cloud
-from selfcal.pipelines.qc import run_qc
-from selfcal.pipelines.qc_spec import QCSpec
+from selfcal.pipelines.qc.checks import run_qc
+from selfcal.pipelines.qc.spec import QCSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "spherecalib_lidar_2cam_sphere"

@@ -7,7 +7,7 @@ import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.spatial.transform import Rotation, Slerp
 
-from selfcal.models import static_intervals as si
+from selfcal.core import static_intervals as si
 
 G = 9.81
 RATE_HZ = 100.0

@@ -1,4 +1,4 @@
-"""Tracker audit (selfcal.audit.tracker_system): its calibrated factors, and hidden effects it must name.
+"""Tracker audit (selfcal.audit.tracker): its calibrated factors, and hidden effects it must name.
 
 Hidden-effect tests: a short calibration run (20 s, tilt steered by 1-2 deg over 20-40 s, vibration bursts) is
 simulated with ONE effect the audit is not told about; the audit must accept that effect first, accept nothing
@@ -13,7 +13,7 @@ from scipy import stats
 
 from selfcal.audit.engine import run_audit
 from selfcal.cli import main
-from selfcal.audit.tracker_system import TrackerAudit
+from selfcal.audit.tracker import TrackerAudit
 from selfcal.factors import tracker as ft
 from selfcal.models import tracker as mt
 from selfcal.pipelines.tracker import estimator_for_audit

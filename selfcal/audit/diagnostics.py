@@ -32,7 +32,7 @@ from scipy import signal, stats
 from scipy.special import gammaln
 
 from selfcal.audit.engine import ResidualFamily
-from selfcal.models.signals import cross_correlation_lag  # noqa: F401  (re-exported: one implementation)
+from selfcal.core.signals import cross_correlation_lag  # noqa: F401  (re-exported: one implementation)
 
 TIME_COORDINATE = "time_s"
 MIN_NORMALTEST_N = 8  # below: Shapiro-Wilk (normaltest's skew test needs n >= 8)

@@ -18,7 +18,8 @@ import gtsam
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from selfcal.models import imu, so3
+from selfcal.models import imu
+from selfcal.core import so3
 
 
 ALL_ACCEL_M = tuple(range(6))

@@ -18,7 +18,7 @@ import gtsam
 import numpy as np
 
 from selfcal.models import scan as ms
-from selfcal.models import so3
+from selfcal.core import so3
 
 
 def _points_in_imu(values, p_V, R_IV, t_IV, extrinsic_key):

@@ -13,7 +13,7 @@ prism velocity (tracker)   :func:`prism_velocity_factor` (custom)           ``v 
 beam spot (camera)         :func:`beam_bearing_factor` (custom)             bearing error (rad, 2)
 =========================  ===============================================  ==========================
 
-The audit (:mod:`selfcal.audit.tracker_system`) rebuilds the tracker and inclinometer factors with calibration
+The audit (:mod:`selfcal.audit.tracker`) rebuilds the tracker and inclinometer factors with calibration
 effects as variables: :func:`calibrated_prism_factor` (lever-arm correction, clock offset; one block of samples
 per keyframe), :func:`calibrated_prism_velocity_factor` (clock offset), :func:`calibrated_inclinometer_factor`
 (bias, scale, acceleration sensitivity, in roll/pitch).
@@ -26,7 +26,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.models import tracker as mt
 
 UP_W = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))

@@ -20,10 +20,10 @@ from scipy.signal import butter, savgol_filter, sosfiltfilt
 from scipy.spatial.transform import Rotation
 
 from selfcal.factors import imu as fimu
-from selfcal.graphs.solve import DegenerateDataError, marginal_covariances, optimize, robust
+from selfcal.core.solve import DegenerateDataError, marginal_covariances, optimize, robust
 from selfcal.io.recording import ImuData
-from selfcal.models.signals import cross_correlation_lag
-from selfcal.models.static_intervals import detect_static_intervals
+from selfcal.core.signals import cross_correlation_lag
+from selfcal.core.static_intervals import detect_static_intervals
 
 ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
 ACCEL_OFFSET, GYRO_OFFSET = gtsam.symbol("o", 0), gtsam.symbol("o", 1)

@@ -22,9 +22,9 @@ import gtsam
 import numpy as np
 
 from selfcal.factors import scan as fs
-from selfcal.graphs.solve import DegenerateDataError, dense_marginals, optimize
+from selfcal.core.solve import DegenerateDataError, dense_marginals, optimize
 from selfcal.models import scan as ms
-from selfcal.models.sphere import SphereNotFoundError, fit_sphere
+from selfcal.core.sphere import SphereNotFoundError, fit_sphere
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_filter
 
 from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
-from selfcal.graphs.solve import optimize
+from selfcal.core.solve import optimize
 from selfcal.models import imu, ship
 
 R_KEY, B_KEY, V_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B, gtsam.symbol_shorthand.V

@@ -28,7 +28,7 @@ import gtsam
 import numpy as np
 
 from selfcal.factors.stationing import accel_block_factor, prism_block_factor
-from selfcal.graphs.solve import DegenerateDataError, marginal_covariances
+from selfcal.core.solve import DegenerateDataError, marginal_covariances
 from selfcal.models.stationing import chain_transforms
 
 log = logging.getLogger(__name__)

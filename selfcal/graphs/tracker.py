@@ -52,8 +52,8 @@ import numpy as np
 from scipy import stats
 
 from selfcal.factors import tracker as ft
-from selfcal.graphs.solve import DegenerateDataError, optimize
-from selfcal.models import so3
+from selfcal.core.solve import DegenerateDataError, optimize
+from selfcal.core import so3
 from selfcal.models import tracker as mt
 from selfcal.models.tracker import wishart_lambda_max_quantile, wishart_lambda_min_quantile
 
@@ -356,7 +356,7 @@ class TrackerEstimator:
         self._removed_order: deque = deque(maxlen=4096)  # inclinometer factors waiting for the accelerometer after them
         self.counts = {"accepted": 0, "rejected": 0, "held_out": 0, "removed": 0}
         # [factor, tag, keyframe, removed, meta]: meta holds what the audit needs to rebuild the factor with
-        # calibration effects (selfcal.audit.tracker_system)
+        # calibration effects (selfcal.audit.tracker)
         self.graph_log: list | None = [] if options.keep_graph else None
         self._meta: dict[int, dict] = {}  # id(factor object) -> meta, until the factor enters the graph
         self._log_position: dict[int, int] = {}  # smoother factor index -> position in graph_log

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfcal.models import so3
+from selfcal.core import so3
 
 STANDARD_GRAVITY_M_S2 = 9.80665
 

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfcal.models import so3
+from selfcal.core import so3
 
 GRAVITY_W_M_S2 = np.array([0.0, 0.0, -9.80665])  # gravity vector in the world frame (z up)
 

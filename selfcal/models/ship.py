@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from selfcal.models import so3
+from selfcal.core import so3
 
 
 def tilt_from_specific_force(f_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -89,7 +89,7 @@ def scaled_gyro_preintegration(gyro_rad_s: np.ndarray, dt_s: np.ndarray, bias_ha
 
         J <- Exp(u_n dt_n)^T J + Jr(u_n dt_n) (dw/d.) dt_n
 
-    (here summed in closed form by :func:`selfcal.models.so3.integrate_rates`).  For rotation about one fixed
+    (here summed in closed form by :func:`selfcal.core.so3.integrate_rates`).  For rotation about one fixed
     axis the first-order form is exact in ``c`` (all the Exp's commute), whatever the angle; the remainder is of
     order ``c |theta|^2`` times the non-commuting part of the motion between two keyframes.
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfcal.models import so3
+from selfcal.core import so3
 
 E_Z = np.array([0.0, 0.0, 1.0])
 

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.models.ship import tilt_from_specific_force
 
 __all__ = ["tilt_from_specific_force", "up_direction_B", "tilt_from_axis_angles", "axis_angles_from_tilt",

@@ -8,10 +8,10 @@ from functools import partial
 import numpy as np
 
 from selfcal.audit.engine import AuditResult, run_audit
-from selfcal.audit.imu_pair_system import ImuPairAudit, simulate_pair_like
-from selfcal.audit.imu_static_system import ImuStaticAudit
+from selfcal.audit.imu_pair import ImuPairAudit, simulate_pair_like
+from selfcal.audit.imu.static import ImuStaticAudit
 from selfcal.audit.noise import noise_audit
-from selfcal.audit.imu_system import ImuIntrinsicsAudit, simulate_like
+from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit, simulate_like
 from selfcal.io.recording import Recording
 from selfcal.models import imu
 
@@ -86,20 +86,20 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
     elif system == "scan":
         if base not in (None, "error15"):
             raise ValueError(f"unknown base model {base!r} for system scan: the base is 'error15'")
-        from selfcal.audit.scan_system import ScanAudit
+        from selfcal.audit.scan import ScanAudit
         from selfcal.pipelines.scan import read_scan, scan_problem
         audit_system = ScanAudit(scan_problem(read_scan(recording)))
     elif system == "ship":
         if base not in (None, "attitude"):
             raise ValueError(f"unknown base model {base!r} for system ship: the base is 'attitude'")
-        from selfcal.audit.ship_system import ShipAudit
+        from selfcal.audit.ship import ShipAudit
         from selfcal.pipelines.ship import ship_inputs
         name = names[0] if names else "imu0"
         audit_system = ShipAudit(ship_inputs(recording, name), sensor=name)
     elif system == "tracker":
         if base not in (None, "smoother"):
             raise ValueError(f"unknown base model {base!r} for system tracker: the base is 'smoother'")
-        from selfcal.audit.tracker_system import TrackerAudit
+        from selfcal.audit.tracker import TrackerAudit
         from selfcal.pipelines.tracker import estimator_for_audit
         audit_system = TrackerAudit(estimator_for_audit(recording))
     else:

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from selfcal.baselines.patent_000_encoder import patent_calibration
-from selfcal.graphs import encoder as ge
-from selfcal.graphs import encoder_durable as ged
-from selfcal.io.encoder_recording import EncoderRecordingError, read_encoder_arrays, read_reference
+from selfcal.baselines.encoder import patent_calibration
+from selfcal.graphs.encoder import calibration as ge
+from selfcal.graphs.encoder import durable as ged
+from selfcal.io.encoder import EncoderRecordingError, read_encoder_arrays, read_reference
 from selfcal.io.recording import Recording
 from selfcal.models import encoder as enc
 from selfcal.sim.encoder import EncoderScenario
@@ -244,7 +244,7 @@ def measure_encoder(rec: Recording, calibration: dict, covariance: np.ndarray | 
                     drift: ged.DriftModel = ged.DriftModel()) -> MeasureResult:
     """ML angle of every frame of ``array`` with the calibration; flagged frames get NaN and their flag.
 
-    ``track_drift``: durable self-calibration (:mod:`selfcal.graphs.encoder_durable`): the calibration is the
+    ``track_drift``: durable self-calibration (:mod:`selfcal.graphs.encoder.durable`): the calibration is the
     prior, iSAM2 follows the drifting geometry, aperture and dark level frame by frame (columns
     ``drift_columns``) and refines the edges; the result carries the updated calibration.
     """
@@ -332,7 +332,7 @@ def _updated_calibration(calibration: dict, covariance: np.ndarray, array: str, 
 
 def encoder_audit_system(rec: Recording, frames: dict | None = None):
     """The audit's view of an encoder recording: decoded frames, the patent's start values, the ML base fit."""
-    from selfcal.audit.encoder_system import EncoderAudit
+    from selfcal.audit.encoder import EncoderAudit
     problem = problem_from_recording(rec, frames, use_reference=False)
     a0 = problem.arrays[0]
     base = patent_calibration(a0.frames, problem.code, a0.geometry_nominal, a0.adc_max, a0.noise_sigma)

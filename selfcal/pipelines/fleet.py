@@ -220,7 +220,7 @@ def calibrate_imu_pair_task(recording_path, options: dict) -> dict:
     Options as the command: ``imu0``, ``imu1`` (default the first two), ``lever_arm``, ``time_offset``,
     ``gains`` (true / false / unset = where the data determine it), ``lowpass_hz`` (default 5, 0: none).
     """
-    from selfcal.models import so3
+    from selfcal.core import so3
     from selfcal.pipelines.imu_calibration import calibrate_imu_pair
     rec = read_recording(recording_path)
     imu0, imu1 = _sensor(rec, options, "imu0", 0), _sensor(rec, options, "imu1", 1)

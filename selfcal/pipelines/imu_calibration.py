@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selfcal.graphs import imu_intrinsics as gi
+from selfcal.graphs import imu as gi
 from selfcal.graphs import imu_pair as gp
 from selfcal.io.recording import ImuData, Recording, RecordingError
 from selfcal.models import imu

@@ -11,10 +11,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from selfcal.baselines import patent_002_rotation as patent
+from selfcal.baselines import imu_pair as patent
 from selfcal.graphs import imu_pair as gp
-from selfcal.models import so3
-from selfcal.sim.imu_scenarios import ImuNoise, ImuPairScenario
+from selfcal.core import so3
+from selfcal.sim.imu import ImuNoise, ImuPairScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
 
 

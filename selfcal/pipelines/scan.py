@@ -5,7 +5,7 @@ Steps (patent 001, steps 202-207):
 1. read the per-clock point sets (set A, vision frame) and the INS solution; place set A in the world with the
    INS poses (the inertial-only scan);
 2. isolate sphere candidates with open3d (voxel downsampling, DBSCAN clustering, KD-tree neighbourhoods) and
-   fit each with RANSAC + least squares at the known radius (:func:`selfcal.models.sphere.ransac_sphere`):
+   fit each with RANSAC + least squares at the known radius (:func:`selfcal.core.sphere.ransac_sphere`):
    the inliers, split by clock, are set B;
 3. per-point radial sigmas from the stereo geometry (:func:`selfcal.models.scan.stereo_point_covariance`);
 4. the factor graph (:mod:`selfcal.graphs.scan`): batch LM, or iSAM2 sphere by sphere with ``online=True``;
@@ -23,10 +23,10 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from selfcal.graphs import scan as gs
-from selfcal.graphs.solve import DegenerateDataError
+from selfcal.core.solve import DegenerateDataError
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import scan as ms
-from selfcal.models.sphere import SphereNotFoundError, ransac_sphere
+from selfcal.core.sphere import SphereNotFoundError, ransac_sphere
 
 log = logging.getLogger(__name__)
 

@@ -176,8 +176,8 @@ def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = Tru
 
 
 def patent_baseline(recording: Recording, use_fading: bool = True, use_fault_detection: bool = True):
-    """Patent 004's filter (:mod:`selfcal.baselines.patent_004_tracker`) on a recording, same sensor model."""
-    from selfcal.baselines.patent_004_tracker import Patent004Filter, Patent004Params
+    """Patent 004's filter (:mod:`selfcal.baselines.tracker`) on a recording, same sensor model."""
+    from selfcal.baselines.tracker import Patent004Filter, Patent004Params
     n = noise_from_meta({name: s.meta for name, s in recording.sensors.items()})
     params = Patent004Params(
         tracker_sigma_m=n.tracker_sigma_m, tracker_velocity_sigma_m_s=n.tracker_velocity_sigma_m_s,
@@ -197,7 +197,7 @@ def patent_baseline(recording: Recording, use_fading: bool = True, use_fault_det
 
 def estimator_for_audit(recording: Recording, keyframe_s: float = 0.2) -> TrackerEstimator:
     """The online pass over a recording (no gating) with every factor and its measurement kept: the input of
-    :class:`selfcal.audit.tracker_system.TrackerAudit` (``selfcal audit REC --system tracker``)."""
+    :class:`selfcal.audit.tracker.TrackerAudit` (``selfcal audit REC --system tracker``)."""
     meta = {name: s.meta for name, s in recording.sensors.items()}
     # every sample enters: gating would hold out exactly the sensor whose calibration error the audit is to
     # find (a biased inclinometer disagrees with the camera); the vibration model stays

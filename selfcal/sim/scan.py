@@ -54,7 +54,7 @@ import numpy as np
 import open3d as o3d
 
 from selfcal.models import scan as ms
-from selfcal.models import so3
+from selfcal.core import so3
 
 log = logging.getLogger(__name__)
 

@@ -61,7 +61,7 @@ from scipy.spatial.transform import Rotation
 
 from selfcal.io.recording import Recording, SensorData, imu_sensor, write_recording
 from selfcal.models import imu
-from selfcal.sim.imu_scenarios import DEFAULT_T0_NS, ImuNoise
+from selfcal.sim.imu import DEFAULT_T0_NS, ImuNoise
 from selfcal.sim.trajectories import E_Z, Trajectory, TrajectorySample, smooth_step, to_plain
 
 KINDS = ("calm", "heave", "turning")

@@ -34,10 +34,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from selfcal.io.recording import Recording, SensorData, imu_sensor, write_recording
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.models import tracker as mt
 from selfcal.models.imu import STANDARD_GRAVITY_M_S2
-from selfcal.sim.imu_scenarios import DEFAULT_T0_NS
+from selfcal.sim.imu import DEFAULT_T0_NS
 from selfcal.sim.trajectories import E_Z, smooth_bump, to_plain
 
 CHUNK_S = 60.0

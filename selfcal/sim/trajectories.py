@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from selfcal.models import so3
+from selfcal.core import so3
 
 E_Z = np.array([0.0, 0.0, 1.0])
 
@@ -330,7 +330,7 @@ class HandheldTrajectory(Trajectory):
     needed), which keeps |phi| well below 2 pi.  The envelope ``e(t)`` is 0 on the static pieces and rises
     to 1 over ``ramp_s`` with the septic :func:`smooth_step`.  R_0 is level within ``initial_tilt_deg`` with
     a random heading.  The default 10 s rest at the start is the initial period on which the static-interval
-    detector (:mod:`selfcal.models.static_intervals`) sets its threshold.
+    detector (:mod:`selfcal.core.static_intervals`) sets its threshold.
     """
 
     def __init__(self, duration_s: float = 60.0, seed: int = 0, static_start_s: float = 10.0,

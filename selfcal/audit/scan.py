@@ -34,9 +34,9 @@ import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.graphs import scan as gs
-from selfcal.graphs.solve import dense_marginals, optimize
+from selfcal.core.solve import dense_marginals, optimize
 from selfcal.models import scan as ms
-from selfcal.models.sphere import SphereNotFoundError, fit_sphere
+from selfcal.core.sphere import SphereNotFoundError, fit_sphere
 
 MEANINGS = {
     "time_offset": "the camera clock and the INS clock are offset: a profile stamped t was taken at INS time t + dt",

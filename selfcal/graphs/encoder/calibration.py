@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from selfcal.factors import encoder as fenc
-from selfcal.graphs.solve import DegenerateDataError
+from selfcal.core.solve import DegenerateDataError
 from selfcal.models import encoder as enc
 
 log = logging.getLogger(__name__)

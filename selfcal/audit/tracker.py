@@ -58,7 +58,7 @@ import numpy as np
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.factors import tracker as ft
 from selfcal.graphs.imu_pair import correlation_inflation
-from selfcal.graphs.solve import DegenerateDataError, marginal_covariances
+from selfcal.core.solve import DegenerateDataError, marginal_covariances
 from selfcal.graphs.tracker import TrackerEstimator, gauss_newton
 from selfcal.models import tracker as mt
 

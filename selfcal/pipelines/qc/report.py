@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 
 from selfcal.audit.report import CSS, png_to_data_uri
 from selfcal.io.atomic import atomic_write_bytes, atomic_write_text
-from selfcal.pipelines.qc import QCResult
+from selfcal.pipelines.qc.checks import QCResult
 
 VERDICT_COLOUR = {"pass": "#cdebd0", "fail": "#f6c9c4", "incomplete": "#fbe7c0", "reported": "#f6f8fa"}
 IMAGE_PIXELS = 600  # long side of the rasterised deviation map

@@ -18,10 +18,11 @@ import gtsam
 import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
-from selfcal.graphs import imu_intrinsics as gi
-from selfcal.graphs.solve import marginal_covariances, optimize
+from selfcal.graphs import imu as gi
+from selfcal.core.solve import marginal_covariances, optimize
 from selfcal.io.recording import ImuData
-from selfcal.models import imu, so3
+from selfcal.models import imu
+from selfcal.core import so3
 
 TIME_CHANNEL = "time_s"
 

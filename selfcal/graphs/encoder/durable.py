@@ -20,7 +20,7 @@ touches the newest drift state, so marginalisation folds them into one marginal 
 graph's size stays bounded (one dense factor over the edges and the state plus the newest frame) however
 long the run.
 
-A frame is pre-fitted with the current parameters held fixed (:func:`selfcal.graphs.encoder.measure_frame`):
+A frame is pre-fitted with the current parameters held fixed (:func:`selfcal.graphs.encoder.calibration.measure_frame`):
 its start values for iSAM2's single Gauss-Newton step, and its flags -- a flagged frame (saturated, dark,
 undecodable, residual, jump) never enters the estimator.
 
@@ -41,7 +41,7 @@ import gtsam
 import numpy as np
 
 from selfcal.factors import encoder as fenc
-from selfcal.graphs import encoder as ge
+from selfcal.graphs.encoder import calibration as ge
 from selfcal.models import encoder as enc
 
 log = logging.getLogger(__name__)

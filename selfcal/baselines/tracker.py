@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from selfcal.models import so3
+from selfcal.core import so3
 from selfcal.models import tracker as mt
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ import numpy as np
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily
 from selfcal.factors import imu as fimu
 from selfcal.graphs import imu_pair as gp
-from selfcal.graphs.solve import marginal_covariances, optimize
+from selfcal.core.solve import marginal_covariances, optimize
 from selfcal.io.recording import ImuData
 from selfcal.models import imu
 

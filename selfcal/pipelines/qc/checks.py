@@ -16,12 +16,12 @@ reason, and everything else is still checked.
 
 Pipeline: non-finite points dropped (counted) -> voxel downsampling -> normals (KD-tree) -> the largest
 planes by RANSAC (open3d ``segment_plane``), removed -> DBSCAN clusters of the rest -> per cluster robust
-sphere RANSAC (:func:`selfcal.models.sphere.ransac_sphere`, radius within bounds), candidates kept if their
+sphere RANSAC (:func:`selfcal.core.sphere.ransac_sphere`, radius within bounds), candidates kept if their
 points' normals point radially -> each sphere refitted on the full-resolution points near it
 (:func:`fit_sphere`) -> planes refitted on the full-resolution points near them (total least squares:
 smallest eigenvector of their covariance) -> distances to the reference mesh by open3d ``RaycastingScene`` closest points.
 
-The spec format is documented in ``docs/qc.md`` (:mod:`selfcal.pipelines.qc_spec`).
+The spec format is documented in ``docs/qc.md`` (:mod:`selfcal.pipelines.qc.spec`).
 """
 from __future__ import annotations
 
@@ -32,9 +32,9 @@ import numpy as np
 import open3d as o3d
 
 from selfcal.io.pointcloud import LoadedCloud, PointCloudError, points_of
-from selfcal.models.sphere import (SphereFit, SphereNotFoundError, fit_sphere, ransac_sphere,
+from selfcal.core.sphere import (SphereFit, SphereNotFoundError, fit_sphere, ransac_sphere,
                                    sphere_residuals_m)
-from selfcal.pipelines.qc_spec import PlaneSpec, QCSpec, QCSpecError, ReferenceSpec, SphereSpec
+from selfcal.pipelines.qc.spec import PlaneSpec, QCSpec, QCSpecError, ReferenceSpec, SphereSpec
 
 __all__ = ["QCSpec", "QCSpecError", "Check", "QCResult", "run_qc", "detect_spheres", "evaluate_sphere",
            "evaluate_plane", "signed_distances_to_mesh", "trimmed_range"]

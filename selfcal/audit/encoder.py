@@ -1,6 +1,6 @@
 """The optical angle encoder (``--system encoder``) for the audit.
 
-Base model (``ml``): the patent's image model as calibrated by :mod:`selfcal.graphs.encoder` -- edges,
+Base model (``ml``): the patent's image model as calibrated by :mod:`selfcal.graphs.encoder.calibration` -- edges,
 positions, ``p, q``, aperture, dark level, a smooth illumination profile per frame (so light intensity drift
 from frame to frame is already in the base).  Catalog (only effects the data can identify are offered):
 
@@ -9,7 +9,7 @@ from frame to frame is already in the base).  Catalog (only effects the data can
 ``temperature_scale``  ``p`` linear in the ``temperature`` channel: ``p (1 + k (T - T_mean))``; offered when the
                        temperature varies.  Estimate: ``k_per_degC``.
 ``eccentricity``       code centre off the axis ``(eps_x, eps_y)`` (code radii); offered only when
-                       :func:`selfcal.graphs.encoder.eccentricity_observability` finds it separable from the
+                       :func:`selfcal.graphs.encoder.calibration.eccentricity_observability` finds it separable from the
                        edges -- with free edges it is a once-per-revolution graduation error and is reported
                        in ``diagnostics`` as unobservable instead.
 
@@ -28,7 +28,7 @@ import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.factors import encoder as fenc
-from selfcal.graphs import encoder as ge
+from selfcal.graphs.encoder import calibration as ge
 from selfcal.models import encoder as enc
 
 MEANINGS = {

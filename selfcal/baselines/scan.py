@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
 from selfcal.models import scan as ms
-from selfcal.models import so3
+from selfcal.core import so3
 
 
 @dataclass

@@ -32,7 +32,8 @@ from typing import Callable
 import numpy as np
 
 from selfcal.io.recording import Recording, imu_sensor, write_recording
-from selfcal.models import imu, so3
+from selfcal.models import imu
+from selfcal.core import so3
 from selfcal.models.imu import AccelIntrinsics, GyroIntrinsics
 from selfcal.sim.trajectories import Trajectory, TrajectorySample, to_plain
 

@@ -20,10 +20,11 @@ import gtsam
 import numpy as np
 
 from selfcal.factors import imu as fimu
-from selfcal.graphs.solve import DegenerateDataError, marginal_covariances, optimize, robust
+from selfcal.core.solve import DegenerateDataError, marginal_covariances, optimize, robust
 from selfcal.io.recording import ImuData
-from selfcal.models import imu, so3
-from selfcal.models.static_intervals import detect_static_intervals, require_static_poses, static_poses
+from selfcal.models import imu
+from selfcal.core import so3
+from selfcal.core.static_intervals import detect_static_intervals, require_static_poses, static_poses
 
 U = gtsam.symbol_shorthand.U  # up-direction of static pose k
 ACCEL_BIAS, ACCEL_M = gtsam.symbol("a", 0), gtsam.symbol("a", 1)

@@ -31,7 +31,7 @@ from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.graphs import imu_pair
 from selfcal.graphs.ship import (GYRO_SCALE_KEY, LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY,
                                  ShipGraph, ShipGraphOptions, ShipInputs, keyframes_from_inputs)
-from selfcal.graphs.solve import marginal_covariances, optimize
+from selfcal.core.solve import marginal_covariances, optimize
 
 MEANINGS = {"lever_arm": "the accelerometer is displaced from the centre of rotation: the hull's angular "
                          "acceleration and rate tilt the force it measures",

@@ -13,9 +13,9 @@ import gtsam
 import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
-from selfcal.audit.imu_system import MEANINGS, is_temperature
+from selfcal.audit.imu.intrinsics import MEANINGS, is_temperature
 from selfcal.factors.imu import linear_bias_factor
-from selfcal.graphs.solve import gaussian, marginal_covariances, optimize
+from selfcal.core.solve import gaussian, marginal_covariances, optimize
 from selfcal.io.recording import ImuData
 
 QUANTITIES = {"accel": ("m s^-2", "accel_m_s2"), "gyro": ("rad s^-1", "gyro_rad_s")}
