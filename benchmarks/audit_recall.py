@@ -30,7 +30,8 @@ import numpy as np
 from selfcal.audit.engine import run_audit
 from selfcal.audit.imu_pair import ImuPairAudit
 from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
-from selfcal.sim.imu import AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.sim.imu import AuxChannel, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.core.inertial import ImuNoise
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
 
 import _schema  # benchmarks/_schema.py: the results schema every benchmark writes

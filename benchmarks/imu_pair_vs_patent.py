@@ -17,9 +17,11 @@ import numpy as np
 
 from selfcal.io.recording import read_recording
 from selfcal.core import so3
-from selfcal.pipelines.imu_calibration import calibrate_imu, calibrate_imu_pair
-from selfcal.pipelines.monte_carlo import imu_pair_rotation_study, pair_scenario
-from selfcal.sim.imu import ImuNoise, ImuPairScenario, random_intrinsics
+from selfcal.pipelines.imu import calibrate_imu
+from selfcal.pipelines.imu_pair import calibrate_imu_pair
+from selfcal.pipelines.imu_pair import imu_pair_rotation_study, pair_scenario
+from selfcal.core.inertial import ImuNoise
+from selfcal.sim.imu import ImuPairScenario, random_intrinsics
 from selfcal.sim.trajectories import MultiPositionTrajectory
 
 import _schema  # benchmarks/_schema.py: the results schema every benchmark writes

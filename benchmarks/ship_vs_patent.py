@@ -137,7 +137,7 @@ def real_logs(quick: bool) -> dict:
     estimate should stay at it (drift), on the turn about z too (the tilt never changes); after tilting by hand
     the board returns to its start, so the last 2 s are compared with the first."""
     from selfcal.io.importers import import_sunsided_mpu6050
-    from selfcal.models.ship import tilt_from_specific_force
+    from selfcal.core.inertial import tilt_from_specific_force
     out = {}
     for scenario, (compared, truth) in REAL_LOGS.items():
         if scenario not in SHIPPED_LOGS and not SUNSIDED.is_dir():

@@ -35,7 +35,6 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from selfcal.io.atomic import atomic_write_text  # noqa: E402
 from selfcal.pipelines.tracker import OnlineTracker, noise_from_meta, patent_baseline, smooth_tracker  # noqa: E402
-from selfcal.graphs.tracker import GatingOptions, TrackerOptions  # noqa: E402
 from selfcal.sim.tracker import TrackerScenario  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -37,7 +37,7 @@ def _write_yaml(path, data: dict) -> None:
 
 def _cmd_calibrate_imu(args) -> None:
     from selfcal.io.recording import read_recording
-    from selfcal.pipelines.imu_calibration import calibrate_imu
+    from selfcal.pipelines.imu import calibrate_imu
     rec = read_recording(args.recording)
     names = [args.imu] if args.imu else rec.imu_names()
     if not names:
@@ -54,7 +54,7 @@ def _cmd_calibrate_imu(args) -> None:
 
 def _cmd_calibrate_imu_pair(args) -> None:
     from selfcal.io.recording import read_recording
-    from selfcal.pipelines.imu_calibration import calibrate_imu_pair
+    from selfcal.pipelines.imu_pair import calibrate_imu_pair
     rec = read_recording(args.recording)
     names = rec.imu_names()
     imu0 = args.imu0 or (names[0] if names else None)
@@ -588,7 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from selfcal.errors import USER_ERRORS
+    from selfcal.core.errors import USER_ERRORS
     try:
         args = build_parser().parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,

@@ -29,7 +29,8 @@ from selfcal.audit.engine import run_audit
 from selfcal.audit.imu_pair import ImuPairAudit
 from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
 from selfcal.pipelines.audit import audit_recording
-from selfcal.sim.imu import AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.sim.imu import AuxChannel, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.core.inertial import ImuNoise
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
 
 WHITE = ImuNoise(accelerometer_random_walk=0.0, gyroscope_random_walk=0.0)

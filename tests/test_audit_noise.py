@@ -15,7 +15,8 @@ from scipy import integrate, signal
 
 from selfcal.audit.noise import (AllanCurve, allan_curve, avar_gauss_markov, avar_random_walk, avar_white,
                                  fit_noise_model, noise_audit, oadev_correlation, plot_allan)
-from selfcal.sim.imu import ImuNoise, ImuScenario
+from selfcal.core.inertial import ImuNoise
+from selfcal.sim.imu import ImuScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
 
 RATE_HZ = 100.0

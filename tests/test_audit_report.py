@@ -11,7 +11,8 @@ from matplotlib.figure import Figure
 from selfcal.audit.engine import run_audit
 from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
 from selfcal.audit.report import format_estimate, num, pval, render_report, write_report
-from selfcal.sim.imu import ImuNoise, ImuScenario, TemperatureProfile, random_intrinsics
+from selfcal.core.inertial import ImuNoise
+from selfcal.sim.imu import ImuScenario, TemperatureProfile, random_intrinsics
 from selfcal.sim.trajectories import MultiPositionTrajectory
 
 PNG_URI = '<img src="data:image/png;base64,'

@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation
 from selfcal.cli import main
 from selfcal.graphs.imu import MIN_POSES_FULL_ACCEL
 from selfcal.io.recording import read_recording
-from selfcal.sim.imu import ImuNoise, ImuPairScenario, ImuScenario
+from selfcal.core.inertial import ImuNoise
+from selfcal.sim.imu import ImuPairScenario, ImuScenario
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -6,10 +6,8 @@ arrays once the edges are known from a previous calibration (a remount, the dura
 Geometry as the patent's (half field of view ~0.16 rad: 13 of 255 cells on the array), so the ``q s`` term is
 as small as on the real instrument.  Tolerances: estimates within 3 reported sigmas (two-sided 99.7 %).
 """
-import math
 
 import numpy as np
-import pytest
 
 from selfcal.baselines.encoder import patent_calibration
 from selfcal.graphs.encoder import calibration as ge

@@ -17,8 +17,9 @@ import yaml
 from selfcal.cli import main
 from selfcal.io.recording import read_recording
 from selfcal.pipelines import fleet
-from selfcal.pipelines.imu_calibration import calibrate_imu, calibrate_imu_pair
-from selfcal.pipelines.monte_carlo import imu_pair_rotation_study, pair_scenario
+from selfcal.pipelines.imu import calibrate_imu
+from selfcal.pipelines.imu_pair import calibrate_imu_pair
+from selfcal.pipelines.imu_pair import imu_pair_rotation_study, pair_scenario
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 MULTI = DATA / "mpu6050_multiposition"

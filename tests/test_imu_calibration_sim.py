@@ -9,9 +9,12 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from selfcal.core.solve import DegenerateDataError
-from selfcal.models.imu import STANDARD_GRAVITY_M_S2, upper_triangular_entries
-from selfcal.pipelines.imu_calibration import calibrate_imu, calibrate_imu_pair
-from selfcal.sim.imu import ImuNoise, ImuPairScenario, ImuScenario, random_intrinsics
+from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
+from selfcal.models.imu import upper_triangular_entries
+from selfcal.pipelines.imu import calibrate_imu
+from selfcal.pipelines.imu_pair import calibrate_imu_pair
+from selfcal.core.inertial import ImuNoise
+from selfcal.sim.imu import ImuPairScenario, ImuScenario, random_intrinsics
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory, Trajectory, TrajectorySample
 
 RATE_HZ = 100.0

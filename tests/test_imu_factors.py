@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from factor_checks import assert_factor_jacobians
+from selfcal.core import inertial
 from selfcal.factors import imu as fimu
 from selfcal.models import imu
 from selfcal.core import so3
@@ -121,7 +122,7 @@ def test_dynamic_pair_factor(seed):
     w0 = rng.normal(size=(40, 3))
     w_dot0 = rng.normal(size=(40, 3))
     f1_at = fimu.Signal(t1, f1_in_0).at(t0 - dt_true)[0]
-    v0 = f1_at - np.einsum("nij,j->ni", imu.lever_arm_jacobian(w0, w_dot0), r_m) + d
+    v0 = f1_at - np.einsum("nij,j->ni", inertial.lever_arm_jacobian(w0, w_dot0), r_m) + d
     factor = fimu.dynamic_pair_factor(unit_noise(3 * 40), t0, v0, signal1, 1, 2, 3, 4, w0, w_dot0)
     truth = {1: R, 2: np.array([dt_true]), 3: d, 4: r_m}
     assert np.max(np.abs(factor.unwhitenedError(_values(truth)))) < 1e-10

@@ -5,8 +5,9 @@ from scipy.stats import chi2
 from selfcal.factors.imu import symmetric_gain
 from selfcal.models import imu
 from selfcal.core import so3
-from selfcal.pipelines.imu_calibration import calibrate_imu_pair
-from selfcal.sim.imu import ImuNoise, ImuPairScenario
+from selfcal.pipelines.imu_pair import calibrate_imu_pair
+from selfcal.core.inertial import ImuNoise
+from selfcal.sim.imu import ImuPairScenario
 from selfcal.sim.trajectories import HandheldTrajectory
 
 NOISE = ImuNoise(accelerometer_random_walk=0.0, gyroscope_random_walk=0.0)

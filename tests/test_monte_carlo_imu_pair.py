@@ -5,7 +5,7 @@ The full study (>= 100 runs) is benchmarks/imu_pair_monte_carlo.py; this one kee
 import numpy as np
 from scipy.stats import chi2
 
-from selfcal.pipelines.monte_carlo import imu_pair_rotation_study
+from selfcal.pipelines.imu_pair import imu_pair_rotation_study
 
 RUNS = 40
 

@@ -5,7 +5,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from selfcal.errors import USER_ERRORS
+from selfcal.core.errors import USER_ERRORS
 from selfcal.io.pointcloud import (PointCloudError, cloud_from_points, points_of, read_point_cloud,
                                    read_triangle_mesh, write_point_cloud, write_triangle_mesh)
 

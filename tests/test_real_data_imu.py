@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from selfcal.io.importers import import_ansfl_quadrotor
 from selfcal.io.recording import ACCEL_COLUMNS, read_recording
-from selfcal.pipelines.imu_calibration import calibrate_imu, calibrate_imu_pair
+from selfcal.pipelines.imu import calibrate_imu
+from selfcal.pipelines.imu_pair import calibrate_imu_pair
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA = REPO_ROOT / "data"

@@ -3,8 +3,9 @@ import gtsam
 import numpy as np
 import pytest
 
+from selfcal.core import inertial
 from selfcal.factors.ship import tilt_factor
-from selfcal.models import imu, ship
+from selfcal.models import ship
 from factor_checks import assert_factor_jacobians
 
 R, L, K = gtsam.symbol("r", 0), gtsam.symbol("l", 0), gtsam.symbol("k", 0)
@@ -14,7 +15,7 @@ G = 9.80665
 def random_case(rng):
     R_W_S = gtsam.Rot3.Expmap(rng.normal(0, 0.2, 3))
     w, w_dot = rng.normal(0, 0.1, 3), rng.normal(0, 0.1, 3)
-    return R_W_S, imu.lever_arm_jacobian(w, w_dot), rng.normal(0, 0.3, 3), rng.normal(0, 3, 3), rng.normal(0, 0.1, 1)
+    return R_W_S, inertial.lever_arm_jacobian(w, w_dot), rng.normal(0, 0.3, 3), rng.normal(0, 3, 3), rng.normal(0, 0.1, 1)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -54,7 +55,7 @@ def test_lever_arm_estimates_scatter_as_their_sigma():
     frames = []
     for _ in range(n_frames):
         R_W_S = gtsam.Rot3.Ypr(rng.uniform(-np.pi, np.pi), rng.normal(0, 0.05), rng.normal(0, 0.1))
-        A = imu.lever_arm_jacobian(rng.normal(0, 0.1, 3), rng.normal(0, 0.1, 3))
+        A = inertial.lever_arm_jacobian(rng.normal(0, 0.1, 3), rng.normal(0, 0.1, 3))
         frames.append((R_W_S, A))
     nees = []
     for _ in range(runs):

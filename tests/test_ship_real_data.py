@@ -9,7 +9,7 @@ import pytest
 from selfcal.baselines.ship import PatentDriftFilter
 from selfcal.graphs.ship import ShipGraphOptions, ShipSmoother
 from selfcal.io.importers import import_sunsided_mpu6050
-from selfcal.models.ship import tilt_from_specific_force
+from selfcal.core.inertial import tilt_from_specific_force
 from selfcal.pipelines.ship import ship_inputs
 
 LOG = Path(__file__).resolve().parents[2] / "shared" / "data" / "sunsided_mpu6050_hmc5883l_marg" / \

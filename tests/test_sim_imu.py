@@ -3,11 +3,12 @@ import numpy as np
 import pytest
 import yaml
 
+from selfcal.core import inertial
 from selfcal.io.recording import read_recording, read_truth
 from selfcal.models import imu
 from selfcal.core import so3
-from selfcal.sim.imu import (AuxChannel, ImuNoise, ImuPairScenario, ImuScenario, TemperatureProfile,
-                                       random_intrinsics)
+from selfcal.sim.imu import AuxChannel, ImuPairScenario, ImuScenario, TemperatureProfile, random_intrinsics
+from selfcal.core.inertial import ImuNoise
 from selfcal.sim.trajectories import E_Z, HandheldTrajectory, MultiPositionTrajectory
 
 G = 9.80665
@@ -261,7 +262,7 @@ def test_pair_clock_offset_and_rates_follow_the_convention():
     w1, f1 = calibrated(scenario, d1, "1")
     t_true = (d1.t_ns - scenario.t0_ns) * 1e-9 + 0.0123
     s = trajectory.evaluate(t_true)
-    f_expected = imu.specific_force_at_lever_arm(s.specific_force_S(G), s.w_S, s.w_dot_S, scenario.r_m)
+    f_expected = inertial.specific_force_at_lever_arm(s.specific_force_S(G), s.w_S, s.w_dot_S, scenario.r_m)
     np.testing.assert_allclose(w1, s.w_S @ scenario.R_imu0_imu1, atol=1e-12)
     np.testing.assert_allclose(f1, f_expected @ scenario.R_imu0_imu1, atol=1e-9)
     truth = scenario.truth()

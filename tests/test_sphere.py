@@ -184,7 +184,7 @@ def test_bad_input_is_refused_clearly():
 
 
 def test_sphere_not_found_is_a_user_error():
-    from selfcal.errors import USER_ERRORS
+    from selfcal.core.errors import USER_ERRORS
     assert issubclass(SphereNotFoundError, USER_ERRORS)
 
 

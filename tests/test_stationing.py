@@ -9,7 +9,7 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from selfcal.factors.stationing import accel_block_factor, prism_block_factor
-from selfcal.graphs.stationing import (MOUNT_BASE, MOUNT_COLUMN, PIVOT, PRISM, Calibration, FileGeometry,
+from selfcal.graphs.stationing import (MOUNT_COLUMN, PIVOT, PRISM, Calibration, FileGeometry,
                                        StationingSigmas, fit_stationing)
 from selfcal.models.stationing import chain_transforms
 from selfcal.sim.stationing import StationingScenario
@@ -179,7 +179,7 @@ def test_flat_calibration_residuals_and_heldout_against_the_baseline(tmp_path, c
 
 
 def test_station_without_enough_prism_points_is_a_user_error():
-    from selfcal.errors import USER_ERRORS
+    from selfcal.core.errors import USER_ERRORS
     sc = StationingScenario(seed=4, stationing_per_height=2)
     g = _geometry(sc, sc.exact())
     with pytest.raises(USER_ERRORS):

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from selfcal.core import inertial
 from selfcal.audit.engine import run_audit
 from selfcal.cli import main
 from selfcal.audit.tracker import TrackerAudit
@@ -71,7 +72,7 @@ def test_calibrated_factors_vanish_on_exact_data():
     for i in range(len(t)):
         # the disturbance a perfect specific-force inclinometer reads: exact specific force, same averaging
         _, f = sc._imu_exact(t[i] - np.arange(1, n_avg + 1)[::-1] / rate)
-        d = np.array(mt.tilt_from_specific_force(f.mean(axis=0))) - mt.tilt_of_rotation(R[i])
+        d = np.array(inertial.tilt_from_specific_force(f.mean(axis=0))) - mt.tilt_of_rotation(R[i])
         values = gtsam.Values()
         values.insert(X(0), gtsam.Pose3(gtsam.Rot3(R[i]), p[i]))
         fac = ft.calibrated_inclinometer_factor(gtsam.noiseModel.Unit.Create(2), X(0),

@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from selfcal.core import inertial
+from selfcal.core.stats import wishart_lambda_max_quantile, wishart_lambda_min_quantile
 from selfcal.io.recording import read_recording
 from selfcal.models import tracker as mt
 from selfcal.sim.tracker import Fault, TrackerScenario
@@ -41,7 +43,7 @@ def test_measurement_models_roundtrip(scenario):
     sc = scenario
     rng = np.random.default_rng(0)
     roll, pitch = rng.uniform(-0.3, 0.3, 50), rng.uniform(-0.3, 0.3, 50)
-    r2, p2 = mt.tilt_from_specific_force(9.81 * mt.up_direction_B(roll, pitch))
+    r2, p2 = inertial.tilt_from_specific_force(9.81 * mt.up_direction_B(roll, pitch))
     np.testing.assert_allclose(np.c_[r2, p2], np.c_[roll, pitch], atol=1e-12)
     r3, p3 = mt.tilt_from_axis_angles(*mt.axis_angles_from_tilt(roll, pitch))
     np.testing.assert_allclose(np.c_[r3, p3], np.c_[roll, pitch], atol=1e-12)
@@ -116,14 +118,14 @@ def test_wishart_quantiles_against_exact_and_brute_force():
     """m = 1 is chi2(n): the Monte Carlo quantile must match scipy's; m = 2 closed form against brute-force
     eigenvalues of Gaussian matrices (exceedance fraction within 4 binomial sigmas)."""
     n, alpha = 30, 1e-3
-    q1 = mt.wishart_lambda_max_quantile(1, n, alpha, draws=2_000_000)
+    q1 = wishart_lambda_max_quantile(1, n, alpha, draws=2_000_000)
     # the quantile's relative Monte Carlo error: sqrt(alpha (1 - alpha) / N) / (f(q) q) ~ 0.5 %
     assert abs(q1 / stats.chi2.ppf(1 - alpha, n) - 1) < 0.02
     rng = np.random.default_rng(3)
     N, a = 200_000, 0.01
     Y = rng.standard_normal((N, n, 2))
     eig = np.linalg.eigvalsh(np.einsum("kni,knj->kij", Y, Y))
-    for lam, q, tail in ((eig[:, -1], mt.wishart_lambda_max_quantile(2, n, a), lambda x, q: x > q),
-                         (eig[:, 0], mt.wishart_lambda_min_quantile(2, n, a), lambda x, q: x < q)):
+    for lam, q, tail in ((eig[:, -1], wishart_lambda_max_quantile(2, n, a), lambda x, q: x > q),
+                         (eig[:, 0], wishart_lambda_min_quantile(2, n, a), lambda x, q: x < q)):
         frac = np.mean(tail(lam, q))
         assert abs(frac - a) < 4 * np.sqrt(a * (1 - a) / N), frac

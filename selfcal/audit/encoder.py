@@ -27,9 +27,7 @@ import gtsam
 import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
-from selfcal.factors import encoder as fenc
 from selfcal.graphs.encoder import calibration as ge
-from selfcal.models import encoder as enc
 
 MEANINGS = {
     "prnu": "per-diode gain non-uniformity of the array (photo-response non-uniformity)",

@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 from scipy import stats
 
-from selfcal.core.solve import dense_jacobian, optimize
+from selfcal.core.solve import dense_jacobian
 
 log = logging.getLogger(__name__)
 

@@ -15,12 +15,13 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from selfcal.core import stats
+from selfcal.core import inertial
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily
 from selfcal.factors import imu as fimu
 from selfcal.graphs import imu_pair as gp
 from selfcal.core.solve import marginal_covariances, optimize
 from selfcal.io.recording import ImuData
-from selfcal.models import imu
 
 MEANINGS = {"time_offset": "the clocks of the two IMUs are offset: t_imu0 = t_imu1 + dt",
             "lever_arm": "imu1 is displaced from imu0: rotation adds centripetal and tangential acceleration",
@@ -121,7 +122,7 @@ class ImuPairAudit:
         coords = {"time_s": t, "angular_rate": np.linalg.norm(dynamic.gyro0, axis=1),
                   "angular_acceleration": np.linalg.norm(dynamic.gyro_rate_dot0, axis=1)}
         gyro = dynamic.gyro0 - dynamic.gyro1.at(t - dt)[0] @ (R @ G_g).T - d_g
-        lever = np.einsum("nij,j->ni", imu.lever_arm_jacobian(dynamic.gyro0, dynamic.gyro_rate_dot0), r)
+        lever = np.einsum("nij,j->ni", inertial.lever_arm_jacobian(dynamic.gyro0, dynamic.gyro_rate_dot0), r)
         accel = dynamic.accel0 + lever - dynamic.accel1.at(t - dt)[0] @ (R @ G_a).T - d_a
         families = [
             ResidualFamily(self.imu1, "pair_gyro", "rad s^-1", gyro / (dynamic.gyro_sigma * self.scale["gyro"]), gyro,
@@ -143,7 +144,7 @@ class ImuPairAudit:
         for fam in fit.families:
             group = fam.quantity.removeprefix("pair_")
             # filtered samples stay slightly correlated: inflate as the calibration does (effective sample size)
-            inflation = 1.0 if group == "static" else gp.correlation_inflation([fam.whitened])
+            inflation = 1.0 if group == "static" else stats.correlation_inflation([fam.whitened])
             scale[group] *= float(np.sqrt(np.mean(fam.whitened**2) * inflation))
         static, dynamic = self._data(fit.context["fold"])
         graph, _ = gp._build(static, dynamic, fit.context["model"], scale, huber_k=None)
@@ -179,7 +180,7 @@ def simulate_pair_like(system: ImuPairAudit, fit: Fit, seed: int, noise_fit: Fit
     w0, w_dot0 = fimu.Signal(d.t0_s, d.gyro0), fimu.Signal(d.t0_s, d.gyro_rate_dot0)
     a0 = fimu.Signal(d.t0_s, d.accel0)
     w, w_dot = w0.at(t1 + dt)[0], w_dot0.at(t1 + dt)[0]
-    f1_in_0 = a0.at(t1 + dt)[0] + np.einsum("nij,j->ni", imu.lever_arm_jacobian(w, w_dot), r)
+    f1_in_0 = a0.at(t1 + dt)[0] + np.einsum("nij,j->ni", inertial.lever_arm_jacobian(w, w_dot), r)
     to_imu1_g, to_imu1_a = np.linalg.inv(R @ G_g), np.linalg.inv(R @ G_a)
     # each pair residual carries both IMUs' noise: give imu1 the whole observed level (imu0's is in its data)
     gyro1 = (w - d_g) @ to_imu1_g.T + rng.normal(0, rms.get("gyro", 0.0) / np.sqrt(3), (len(t1), 3))

@@ -27,8 +27,8 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from selfcal.core import stats
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
-from selfcal.graphs import imu_pair
 from selfcal.graphs.ship import (GYRO_SCALE_KEY, LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY,
                                  ShipGraph, ShipGraphOptions, ShipInputs, keyframes_from_inputs)
 from selfcal.core.solve import marginal_covariances, optimize
@@ -125,7 +125,7 @@ class ShipAudit:
 
     def residual_correlation(self, fit: Fit) -> float:
         """Variance inflation of the tilt residuals: waves make neighbouring keyframes' residuals alike."""
-        return imu_pair.correlation_inflation([fam.whitened for fam in fit.families], max_lag=40)
+        return stats.correlation_inflation([fam.whitened for fam in fit.families], max_lag=40)
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """Value and 1-sigma; the covariance is scaled by the fit's variance factor and by the tilt residuals'

@@ -55,9 +55,10 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from selfcal.core import inertial
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.factors import tracker as ft
-from selfcal.graphs.imu_pair import correlation_inflation
+from selfcal.core.stats import correlation_inflation
 from selfcal.core.solve import DegenerateDataError, marginal_covariances
 from selfcal.graphs.tracker import TrackerEstimator, gauss_newton
 from selfcal.models import tracker as mt
@@ -160,12 +161,12 @@ class TrackerAudit:
                 up = meta["up_B"] - h * mt.cross(w_B, meta["up_B"])
                 f = meta["f_B"] - base.atConstantBias(B(k)).accelerometer()
                 f = f - (lead + h) * mt.cross(w_B, f)
-                a = np.array(mt.tilt_from_specific_force(f)) - mt.tilt_of_rotation(R)
+                a = np.array(inertial.tilt_from_specific_force(f)) - mt.tilt_of_rotation(R)
                 v_d = max(0.5 * float(np.trace(meta["cov"])) - n.incl_sigma_rad**2, 0.0)
                 # the Wiener weight only where the vibration dwarfs the accelerometer's noise: an estimated weight
                 # (v_d known to ~30 %) in the regressor biases the sensitivity towards 0 - Var(w) / E[w^2]
                 w = v_d / (v_d + v_a) if v_d >= STRONG_VIBRATION * v_a else 0.0
-                self.incl.append({"k": k, "t_ns": meta["t_ns"], "z": np.array(mt.tilt_from_specific_force(up)),
+                self.incl.append({"k": k, "t_ns": meta["t_ns"], "z": np.array(inertial.tilt_from_specific_force(up)),
                                   "d": w * a, "sigma": float(np.sqrt(n.incl_sigma_rad**2 + (1 - w) * v_d)),
                                   "vibration": float(np.sqrt(v_d))})
             elif tag == "tracker0/velocity" and meta is not None:
@@ -408,7 +409,7 @@ class TrackerAudit:
     @staticmethod
     def _inflation(family: ResidualFamily) -> float:
         """Variance inflation ``1 + 2 sum rho_k`` of one family's whitened residuals in time order, lags up to 1 s
-        (:func:`selfcal.graphs.imu_pair.correlation_inflation`; the sum stops at the first non-positive rho)."""
+        (:func:`selfcal.core.stats.correlation_inflation`; the sum stops at the first non-positive rho)."""
         t = family.coordinates["time_s"]
         order = np.argsort(t, kind="stable")
         per_second = len(t) / max(float(t[order[-1]] - t[order[0]]), 1e-9)

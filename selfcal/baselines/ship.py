@@ -48,7 +48,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import butter
 
-from selfcal.models.ship import tilt_from_specific_force  # the one tilt model; derivation in its docstring
 
 G_M_S2 = 9.80665
 

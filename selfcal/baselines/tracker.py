@@ -44,6 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from selfcal.core import inertial
+from selfcal.core.stats import wishart_lambda_max_quantile
 from selfcal.core import so3
 from selfcal.models import tracker as mt
 
@@ -93,12 +95,12 @@ class Patent004Filter:
         self.chi2_thr = {m: float(stats.chi2.ppf(1 - params.chi2_alpha, m)) for m in range(1, 10)}
         self.eps_fading = float(stats.chi2.ppf(1 - params.fading_alpha, 1))
         tests_per_hour = 3600.0 * params.attitude_rate_hz / params.window
-        self.lambda_D = mt.wishart_lambda_max_quantile(3, params.window, round(params.false_alarms_per_hour
+        self.lambda_D = wishart_lambda_max_quantile(3, params.window, round(params.false_alarms_per_hour
                                                                               / tests_per_hour, 12))
 
     def _initialise(self, p_P, up_B, bearing_C, v_P):
         pr = self.p
-        roll, pitch = mt.tilt_from_specific_force(up_B)
+        roll, pitch = inertial.tilt_from_specific_force(up_B)
         beam_W = pr.tracker_W - p_P
         self.R = mt.attitude_from_tilt_and_beam(float(roll), float(pitch), pr.R_B_C @ bearing_C,
                                                 beam_W / np.linalg.norm(beam_W))

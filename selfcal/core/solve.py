@@ -6,10 +6,12 @@ import logging
 import gtsam
 import numpy as np
 
+from selfcal.core.errors import SelfcalError
+
 log = logging.getLogger(__name__)
 
 
-class DegenerateDataError(ValueError):
+class DegenerateDataError(SelfcalError):
     """The data cannot determine a requested quantity; the message says what motion or data to add."""
 
 

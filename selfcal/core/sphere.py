@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from selfcal.core.errors import SelfcalError
+
 log = logging.getLogger(__name__)
 
 #: below this equivalent cap half-angle a sphere counts as "seen from one side only": a hemisphere
@@ -38,7 +40,7 @@ log = logging.getLogger(__name__)
 ONE_SIDED_CAP_DEG = 60.0
 
 
-class SphereNotFoundError(ValueError):
+class SphereNotFoundError(SelfcalError):
     """No sphere in the points (too few points, no consensus, radius out of bounds): a data problem."""
 
 

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from selfcal.core.errors import SelfcalError
+
 log = logging.getLogger(__name__)
 
 DEFAULT_T_INIT_S = 10.0
@@ -30,11 +32,11 @@ DEFAULT_MIN_DURATION_S = 1.0
 DEFAULT_MIN_SEPARATION_DEG = 10.0
 
 
-class TooFewStaticPosesError(ValueError):
+class TooFewStaticPosesError(SelfcalError):
     """The recording does not hold enough distinct static orientations for the requested calibration."""
 
 
-class StaticDetectionError(ValueError):
+class StaticDetectionError(SelfcalError):
     """The recording cannot be segmented: too short for the initial static period, or that period moves."""
 
 

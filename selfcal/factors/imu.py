@@ -18,6 +18,7 @@ import gtsam
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from selfcal.core import inertial
 from selfcal.models import imu
 from selfcal.core import so3
 
@@ -257,7 +258,7 @@ def dynamic_pair_factor(noise, t0_s, v0, signal1: Signal, rotation_key, time_off
     For gyros there is no lever arm: angular rate is the same everywhere on a rigid body.
     """
     t0_s, v0 = np.asarray(t0_s, dtype=float), np.asarray(v0, dtype=float)
-    L = imu.lever_arm_jacobian(w0, w_dot0) if lever_arm_key is not None else None
+    L = inertial.lever_arm_jacobian(w0, w_dot0) if lever_arm_key is not None else None
     ordered = [k for k in (rotation_key, time_offset_key, offset_key, lever_arm_key, gain_key) if k is not None]
 
     def error(this, values, H):

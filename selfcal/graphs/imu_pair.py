@@ -24,6 +24,7 @@ from selfcal.core.solve import DegenerateDataError, marginal_covariances, optimi
 from selfcal.io.recording import ImuData
 from selfcal.core.signals import cross_correlation_lag
 from selfcal.core.static_intervals import detect_static_intervals
+from selfcal.core.stats import correlation_inflation
 
 ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
 ACCEL_OFFSET, GYRO_OFFSET = gtsam.symbol("o", 0), gtsam.symbol("o", 1)
@@ -147,24 +148,6 @@ def _group_rms(graph, groups, values):
     return {g: (float(np.sqrt(np.mean(np.concatenate([w for _, w in r]) ** 2))),
                 float(np.sqrt(np.mean(np.concatenate([e for e, _ in r]) ** 2))))
             for g, r in _group_residuals(graph, groups, values).items()}
-
-
-def correlation_inflation(blocks: list[np.ndarray], max_lag: int = 10) -> float:
-    """Variance inflation 1 + 2 sum rho_k of residual sequences (n, 3) correlated in time.
-
-    Least squares with per-sample sigmas treats samples as independent; residuals that are correlated
-    (filtered noise, vibration) carry less information, and the covariance must grow by this factor
-    (the effective-sample-size correction; the sum stops at the first non-positive autocorrelation).
-    """
-    inflation = 1.0
-    for k in range(1, max_lag + 1):
-        num = sum(float(np.sum(b[k:] * b[:-k])) for b in blocks if len(b) > k)
-        den = sum(float(np.sum(b * b)) for b in blocks)
-        rho = num / den if den > 0 else 0.0
-        if rho <= 0:
-            break
-        inflation += 2 * rho
-    return inflation
 
 
 def rotation_covariance_at(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel,

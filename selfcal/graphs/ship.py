@@ -26,9 +26,10 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_filter
 
+from selfcal.core import inertial
 from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
 from selfcal.core.solve import optimize
-from selfcal.models import imu, ship
+from selfcal.models import ship
 
 R_KEY, B_KEY, V_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B, gtsam.symbol_shorthand.V
 LEVER_ARM_KEY, SPEED_SCALE_KEY = gtsam.symbol("l", 0), gtsam.symbol("k", 0)
@@ -164,7 +165,7 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     t = inputs.t_s
     index = np.searchsorted(t, np.arange(t[0], t[-1], options.keyframe_s))
     a_known = known_acceleration(inputs, options.remove_known_acceleration)
-    A = imu.lever_arm_jacobian(inputs.gyro_rad_s, smooth_derivative(t, inputs.gyro_rad_s,
+    A = inertial.lever_arm_jacobian(inputs.gyro_rad_s, smooth_derivative(t, inputs.gyro_rad_s,
                                                                      options.angular_acceleration_window_s))
     dt = np.diff(t)
     n_average, n_noise = samples_per_keyframe(1.0 / np.median(dt), options)
@@ -220,7 +221,7 @@ class ShipGraph:
                            SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed)
 
     def tilt_start(self, frame: Keyframe) -> gtsam.Rot3:
-        roll, pitch = ship.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)
+        roll, pitch = inertial.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)
         return gtsam.Rot3.Ypr(0.0, float(pitch), float(roll))
 
     def add(self, frame: Keyframe, estimate: gtsam.Values | None, propagate: bool):

@@ -51,11 +51,12 @@ import gtsam
 import numpy as np
 from scipy import stats
 
+from selfcal.core import inertial
 from selfcal.factors import tracker as ft
 from selfcal.core.solve import DegenerateDataError, optimize
 from selfcal.core import so3
 from selfcal.models import tracker as mt
-from selfcal.models.tracker import wishart_lambda_max_quantile, wishart_lambda_min_quantile
+from selfcal.core.stats import wishart_lambda_max_quantile, wishart_lambda_min_quantile
 
 log = logging.getLogger(__name__)
 
@@ -426,7 +427,7 @@ class TrackerEstimator:
         _, p_P, v_P = self._latest["tracker0"]
         _, up_B = self._latest["incl0"]
         _, bearing_C = self._latest["cam0"]
-        roll, pitch = mt.tilt_from_specific_force(up_B)
+        roll, pitch = inertial.tilt_from_specific_force(up_B)
         beam_W = n.tracker_W - p_P
         R = mt.attitude_from_tilt_and_beam(float(roll), float(pitch), n.R_B_C @ bearing_C, beam_W / np.linalg.norm(beam_W))
         p = p_P - R @ n.r_P_B

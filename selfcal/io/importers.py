@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.io.recording import Recording, RecordingError, SensorData, imu_sensor
 
-STANDARD_GRAVITY_M_S2 = 9.80665
 
 # Kalibr's keys: white-noise densities in m s^-2 Hz^-1/2 and rad s^-1 Hz^-1/2, bias random walks in
 # m s^-3 Hz^-1/2 and rad s^-2 Hz^-1/2

@@ -17,7 +17,7 @@ import numpy as np
 import open3d as o3d
 
 from selfcal.io.atomic import atomic_file
-from selfcal.io.pointcloud_errors import PointCloudError
+from selfcal.core.errors import SelfcalError
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +26,10 @@ __all__ = ["PointCloudError", "LoadedCloud", "points_of", "cloud_from_points", "
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".gltf", ".glb")
+
+
+class PointCloudError(SelfcalError):
+    """A point cloud or mesh file that cannot be used (empty, unreadable, non-finite points)."""
 
 
 @dataclass

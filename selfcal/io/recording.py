@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from selfcal.core.errors import SelfcalError
 from selfcal.io.atomic import atomic_directory
 
 GYRO_COLUMNS = ("w_RS_S_x", "w_RS_S_y", "w_RS_S_z")
@@ -32,7 +33,7 @@ _FIELD_RE = re.compile(r"^([^\[\],]*[^\[\],\s])\s*\[([^\[\],]+)\]$")
 _INT_RE = re.compile(r"^\s*[+-]?[0-9]+\s*$")
 
 
-class RecordingError(ValueError):
+class RecordingError(SelfcalError):
     """Bad recording input; the message is one line naming the file (and line, where there is one)."""
 
 

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from selfcal.core.errors import SelfcalError
 from selfcal.io.recording import ACCEL_COLUMNS, GYRO_COLUMNS, IMU_UNITS, Recording
 
 log = logging.getLogger(__name__)
@@ -65,7 +66,7 @@ CAN_INVALID = 0x7FFF
 _CAN_LAYOUT = struct.Struct("<hhI")
 
 
-class StreamError(ValueError):
+class StreamError(SelfcalError):
     """A stream cannot be opened or configured (bad port, unknown sentence type, ...)."""
 
 

@@ -36,9 +36,6 @@ import numpy as np
 
 from selfcal.core import so3
 
-STANDARD_GRAVITY_M_S2 = 9.80665
-
-
 def upper_triangular(m6: np.ndarray) -> np.ndarray:
     """3x3 upper-triangular matrix from its 6 entries (m00, m01, m02, m11, m12, m22)."""
     m = np.asarray(m6, dtype=float)
@@ -113,21 +110,6 @@ class GyroIntrinsics(_TemperatureBias):
     def rate(self, w_raw: np.ndarray, f_S: np.ndarray, temperature_degC=None) -> np.ndarray:
         """Calibrated angular rate w_S (N, 3) from raw output and the (calibrated) specific force."""
         return (np.asarray(w_raw) - self.bias_at(temperature_degC) - np.asarray(f_S) @ self.A.T) @ self.M.T
-
-
-def specific_force_at_lever_arm(f0_S0, w_S0, w_dot_S0, r_m_S0):
-    """Specific force at a point displaced by r (imu0 frame) on a rigid body, in the imu0 frame.
-
-    ``f_1 = f_0 + w_dot x r + w x (w x r)``; all arrays (N, 3) or (3,), SI units.
-    """
-    r = np.broadcast_to(np.asarray(r_m_S0, dtype=float), np.shape(w_S0))
-    return np.asarray(f0_S0) + np.cross(w_dot_S0, r) + np.cross(w_S0, np.cross(w_S0, r))
-
-
-def lever_arm_jacobian(w_S0, w_dot_S0) -> np.ndarray:
-    """d f_1 / d r of :func:`specific_force_at_lever_arm`: [w_dot]x + [w]x[w]x, shape (N, 3, 3)."""
-    W = so3.hat(w_S0)
-    return so3.hat(w_dot_S0) + W @ W
 
 
 def gyro_rates_and_jacobians(w_raw, f_S, gyro: GyroIntrinsics, bias_offset=None):

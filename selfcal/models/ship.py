@@ -18,18 +18,6 @@ import numpy as np
 from selfcal.core import so3
 
 
-def tilt_from_specific_force(f_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Roll and pitch (rad) of the total force direction, ``f_S`` (N, 3) or (3,), any unit.
-
-    ``Rz^T`` leaves ``(0, 0, g)`` unchanged, ``Ry(pitch)^T`` gives ``g (-sin pitch, 0, cos pitch)``, ``Rx(roll)^T``
-    gives ``f = g (-sin pitch, sin roll cos pitch, cos roll cos pitch)``; pitch lies in [-pi/2, pi/2].
-    """
-    f = np.asarray(f_S, dtype=float)
-    roll = np.arctan2(f[..., 1], f[..., 2])
-    pitch = np.arctan2(-f[..., 0], np.hypot(f[..., 1], f[..., 2]))
-    return roll, pitch
-
-
 def known_acceleration_S(speed_m_s: np.ndarray, speed_rate_m_s2: np.ndarray, yaw_rate_rad_s: np.ndarray) -> np.ndarray:
     """Hull acceleration the speed log and the gyro already explain (N, 3): (dv/dt, v * yaw_rate, 0)."""
     v = np.asarray(speed_m_s, dtype=float)
@@ -42,7 +30,7 @@ def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: n
     """Horizontal part of the measured force direction in the world frame: zero when the hull's up is measured.
 
     The accelerometer sits at ``r_m_S`` from the centre of rotation, so it measures
-    ``f_S = f_centre + A_S r``, ``A_S = [w_dot]x + [w]x^2`` (:func:`selfcal.models.imu.lever_arm_jacobian`),
+    ``f_S = f_centre + A_S r``, ``A_S = [w_dot]x + [w]x^2`` (:func:`selfcal.core.inertial.lever_arm_jacobian`),
     plus the known hull acceleration ``(1 + speed_scale) a_known_S`` (speed log scale error ``speed_scale``).
     With ``u = unit(f_S - A_S r - (1 + k) a_known_S)`` the tilt residual is ``e = [I2 0] R_W_S u`` (rad, 2):
     the world-frame horizontal components of the corrected force direction, zero when it is the world's up.

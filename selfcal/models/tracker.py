@@ -31,19 +31,18 @@ improvement method", steps S101-S103.
 """
 from __future__ import annotations
 
-from functools import lru_cache
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from selfcal.core import so3
-from selfcal.models.ship import tilt_from_specific_force
+from selfcal.core.inertial import tilt_from_specific_force
 
-__all__ = ["tilt_from_specific_force", "up_direction_B", "tilt_from_axis_angles", "axis_angles_from_tilt",
+__all__ = ["up_direction_B", "tilt_from_axis_angles", "axis_angles_from_tilt",
            "cross", "prism_position_W", "prism_velocity_W", "prism_velocity_jacobians", "beam_direction_C",
            "beam_bearing_residual", "pixel_from_direction_C", "bearing_from_pixel", "attitude_from_tilt_and_beam",
-           "rotation_from_euler", "euler_from_rotation", "wishart_lambda_max_quantile", "wishart_lambda_min_quantile",
+           "rotation_from_euler", "euler_from_rotation",
            "tilt_of_rotation", "inclinometer_reading", "prism_position_delayed"]
 
 E_Z = np.array([0.0, 0.0, 1.0])
@@ -219,60 +218,3 @@ def attitude_from_tilt_and_beam(roll_rad: float, pitch_rad: float, beam_B, beam_
     up_B = up_direction_B(roll_rad, pitch_rad)
     rot, _ = Rotation.align_vectors(np.array([E_Z, beam_W]), np.array([up_B, beam_B]), weights=[np.inf, 1.0])
     return rot.as_matrix()
-
-
-def wishart_lambda_max_quantile(m: int, n: int, alpha: float, draws: int = 2_000_000, seed: int = 20240604) -> float:
-    """Upper ``alpha`` quantile of the largest eigenvalue of ``W ~ Wishart_m(n, I)`` (see :func:`_wishart_extremes`)."""
-    lam_max, _ = _wishart_extremes(m, n, draws, seed)
-    return float(np.quantile(lam_max, 1.0 - alpha))
-
-
-def wishart_lambda_min_quantile(m: int, n: int, alpha: float, draws: int = 2_000_000, seed: int = 20240604) -> float:
-    """Lower ``alpha`` quantile of the smallest eigenvalue of ``W ~ Wishart_m(n, I)`` (m = 2 or 3)."""
-    _, lam_min = _wishart_extremes(m, n, draws, seed)
-    return float(np.quantile(lam_min, alpha))
-
-
-@lru_cache(maxsize=16)
-def _wishart_extremes(m: int, n: int, draws: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Upper ``alpha`` quantile of the largest eigenvalue of ``W ~ Wishart_m(n, I)`` (Monte Carlo, seeded).
-
-    Bartlett decomposition ``W = T T^T``, ``T`` lower triangular, ``T_ii^2 ~ chi2(n - i)``, ``T_ij ~ N(0, 1)``
-    below the diagonal: m(m+1)/2 numbers per draw.  With 2e6 draws the quantile at alpha = 2.8e-4 rests on
-    ~560 exceedances (relative error of its tail probability ~4 %).
-    """
-    rng = np.random.default_rng(seed)
-    out_max, out_min = [], []
-    chunk = 1_000_000
-    for start in range(0, draws, chunk):
-        k = min(chunk, draws - start)
-        if m in (2, 3):  # W = T T^T entry by entry, eigenvalues in closed form
-            d = [np.sqrt(rng.chisquare(n - i, k)) for i in range(m)]
-            t10 = rng.standard_normal(k)
-            if m == 2:
-                a, b, c = d[0] ** 2, d[0] * t10, t10**2 + d[1] ** 2
-                root = np.sqrt(0.25 * (a - c) ** 2 + b**2)
-                out_max.append(0.5 * (a + c) + root)
-                out_min.append(0.5 * (a + c) - root)
-                continue
-            t20, t21 = rng.standard_normal(k), rng.standard_normal(k)
-            w00, w01, w02 = d[0] ** 2, d[0] * t10, d[0] * t20
-            w11, w12, w22 = t10**2 + d[1] ** 2, t10 * t20 + d[1] * t21, t20**2 + t21**2 + d[2] ** 2
-            # symmetric 3x3, trigonometric form (Smith 1961): q + 2 p cos(acos(det((W - qI)/p) / 2) / 3 + 2 pi j / 3)
-            q = (w00 + w11 + w22) / 3.0
-            a0, a1, a2 = w00 - q, w11 - q, w22 - q
-            p = np.sqrt((a0**2 + a1**2 + a2**2 + 2 * (w01**2 + w02**2 + w12**2)) / 6.0)
-            det = a0 * (a1 * a2 - w12**2) - w01 * (w01 * a2 - w12 * w02) + w02 * (w01 * w12 - a1 * w02)
-            phi = np.arccos(np.clip(det / p**3 / 2.0, -1.0, 1.0)) / 3.0
-            out_max.append(q + 2.0 * p * np.cos(phi))
-            out_min.append(q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0))
-            continue
-        T = np.zeros((k, m, m))
-        for i in range(m):
-            T[:, i, i] = np.sqrt(rng.chisquare(n - i, k))
-            for j in range(i):
-                T[:, i, j] = rng.standard_normal(k)
-        eig = np.linalg.eigvalsh(T @ np.swapaxes(T, 1, 2))
-        out_max.append(eig[:, -1])
-        out_min.append(eig[:, 0])
-    return np.concatenate(out_max), np.concatenate(out_min)

@@ -7,13 +7,13 @@ from functools import partial
 
 import numpy as np
 
+from selfcal.core import inertial
 from selfcal.audit.engine import AuditResult, run_audit
 from selfcal.audit.imu_pair import ImuPairAudit, simulate_pair_like
 from selfcal.audit.imu.static import ImuStaticAudit
 from selfcal.audit.noise import noise_audit
 from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit, simulate_like
 from selfcal.io.recording import Recording
-from selfcal.models import imu
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
                 raise ValueError(f"a static log is audited against the base model 'bias', not {base!r}")
             audit_system = ImuStaticAudit(data)
         else:
-            audit_system = ImuIntrinsicsAudit(data, float(data.meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
+            audit_system = ImuIntrinsicsAudit(data, float(data.meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
                                               base or "bias")
     elif system == "imu-pair":
         if len(names) < 2:

@@ -35,7 +35,7 @@ then the manifest's ``options``, then the recording's own (the most specific win
 Monte Carlo
 -----------
 :data:`STUDIES` maps study names to a block function ``(n_runs, first_seed, **params) -> partial result`` from
-:mod:`selfcal.pipelines.monte_carlo` and a ``combine`` that joins the blocks in seed order.  Every run is
+:mod:`selfcal.pipelines.imu_pair` and a ``combine`` that joins the blocks in seed order.  Every run is
 seeded by its own seed (``first_seed + run``) and the blocks are joined in seed order, so the same seeds give
 bit-identical estimates whatever the number of workers or the block size (timings differ, of course).
 """
@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from selfcal.core.errors import SelfcalError
 from selfcal.io.atomic import atomic_write_bytes, atomic_write_text
 from selfcal.io.recording import read_recording
 
@@ -64,7 +65,7 @@ BASE_COLUMNS = ("name", "recording", "task", "ok", "error", "seconds")
 DEFAULT_WORKERS = 2  # this machine has 2 cores: one single-threaded worker process per core
 
 
-class FleetError(ValueError):
+class FleetError(SelfcalError):
     """A fleet that cannot start (bad manifest, unknown task or option, no recordings): one line, exit 1."""
 
 
@@ -206,7 +207,7 @@ def _sensor(recording, options: dict, key: str, index: int) -> str:
 
 def calibrate_imu_task(recording_path, options: dict) -> dict:
     """IMU intrinsics (``selfcal calibrate imu``) of one IMU (option ``imu``, default the first), flattened."""
-    from selfcal.pipelines.imu_calibration import calibrate_imu
+    from selfcal.pipelines.imu import calibrate_imu
     rec = read_recording(recording_path)
     sensor = _sensor(rec, options, "imu", 0)
     d = calibrate_imu(rec, sensor, gravity_m_s2=options.get("gravity")).to_dict()
@@ -221,7 +222,7 @@ def calibrate_imu_pair_task(recording_path, options: dict) -> dict:
     ``gains`` (true / false / unset = where the data determine it), ``lowpass_hz`` (default 5, 0: none).
     """
     from selfcal.core import so3
-    from selfcal.pipelines.imu_calibration import calibrate_imu_pair
+    from selfcal.pipelines.imu_pair import calibrate_imu_pair
     rec = read_recording(recording_path)
     imu0, imu1 = _sensor(rec, options, "imu0", 0), _sensor(rec, options, "imu1", 1)
     lowpass = options.get("lowpass_hz", 5.0)
@@ -622,7 +623,7 @@ class Study:
 
 
 def _combine_rotation_studies(blocks: list):
-    from selfcal.pipelines.monte_carlo import RotationStudy
+    from selfcal.pipelines.imu_pair import RotationStudy
     return RotationStudy(errors_graph=np.concatenate([b.errors_graph for b in blocks]),
                          nees=np.concatenate([b.nees for b in blocks]), bound_cov=blocks[0].bound_cov,
                          errors_patent=np.concatenate([b.errors_patent for b in blocks]),
@@ -631,7 +632,7 @@ def _combine_rotation_studies(blocks: list):
 
 
 def _imu_pair_rotation_block(n_runs: int, first_seed: int, **params):
-    from selfcal.pipelines.monte_carlo import imu_pair_rotation_study
+    from selfcal.pipelines.imu_pair import imu_pair_rotation_study
     return imu_pair_rotation_study(n_runs, first_seed=first_seed, **params)
 
 

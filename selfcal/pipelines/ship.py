@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from selfcal.core import inertial
 from selfcal.graphs.ship import SPEED_RATE_WINDOW_S, ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
 from selfcal.io.recording import Recording, RecordingError
-from selfcal.models import imu, ship
+from selfcal.models import ship
 
 SPEED_SOURCES = (("speed0", "speed_log"), ("gps0", "speed"))  # preferred first: the log measures through water
 
@@ -34,7 +35,7 @@ def ship_inputs(recording: Recording, imu_name: str = "imu0") -> ShipInputs:
             break
     meta = data.meta
     return ShipInputs(data.t_s, data.gyro_rad_s, data.accel_m_s2, speed,
-                      float(meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
+                      float(meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
                       float(meta.get("gyroscope_noise_density", 1e-4)),
                       float(meta.get("gyroscope_random_walk", 1e-5)), speed_rate)
 
@@ -88,7 +89,7 @@ class OnlineShipTracker:
         from selfcal.graphs.ship import OnlineShip, ShipGraph
         meta = (meta or {}).get(imu_name, {})
         self.imu_name, self.options = imu_name, options
-        self.graph = ShipGraph(options, float(meta.get("gravity_m_s2", imu.STANDARD_GRAVITY_M_S2)),
+        self.graph = ShipGraph(options, float(meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
                                float(meta.get("gyroscope_noise_density", 1e-4)),
                                float(meta.get("gyroscope_random_walk", 1e-5)))
         self.online = OnlineShip(self.graph)
@@ -134,7 +135,7 @@ class OnlineShipTracker:
         i = min(i, len(t) - 1)
         window = np.abs(t - t[i]) <= 0.5 * self.options.angular_acceleration_window_s
         w_dot = _centred_slope(t[window], gyro[window], t[i])
-        A = imu.lever_arm_jacobian(gyro[i], w_dot)
+        A = inertial.lever_arm_jacobian(gyro[i], w_dot)
         n_average, n_noise = samples_per_keyframe(1.0 / np.median(np.diff(t)), self.options)
         averaged = slice(max(0, i - n_average // 2), i + n_average // 2 + 1)  # the force's averaging window
         has_speed = bool(self.speed) and self.options.remove_known_acceleration

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from selfcal.core.errors import SelfcalError
+
 log = logging.getLogger(__name__)
 
 
@@ -36,7 +38,7 @@ def _ship_estimator(meta: dict[str, dict]):
 ESTIMATORS: dict[str, Callable[[dict[str, dict]], object]] = {"tracker": _tracker_estimator, "ship": _ship_estimator}
 
 
-class TrackError(ValueError):
+class TrackError(SelfcalError):
     """A ``selfcal track`` run cannot start (unknown system, output exists, estimator output malformed)."""
 
 

@@ -17,7 +17,7 @@ per sample and starts at 0 at the first sample (Kalibr's discrete model).
 Two IMUs (``imu0``, ``imu1``): ``v_imu0 = R_imu0_imu1 v_imu1``, imu1 at ``r_m`` (imu0 frame), clocks with
 ``t_imu0 = t_imu1 + dt_s``: imu1's sample stamped t1 (its clock) is taken at imu0 time ``t1 + dt_s``,
 where the trajectory is evaluated; its specific force follows the rigid-body lever-arm relation
-(:func:`selfcal.models.imu.specific_force_at_lever_arm`).  Both clocks start stamping at ``t0_ns``.
+(:func:`selfcal.core.inertial.specific_force_at_lever_arm`).  Both clocks start stamping at ``t0_ns``.
 
 References
 ----------
@@ -31,54 +31,15 @@ from typing import Callable
 
 import numpy as np
 
+from selfcal.core import inertial
+from selfcal.core.inertial import ImuNoise
 from selfcal.io.recording import Recording, imu_sensor, write_recording
 from selfcal.models import imu
 from selfcal.core import so3
 from selfcal.models.imu import AccelIntrinsics, GyroIntrinsics
-from selfcal.sim.trajectories import Trajectory, TrajectorySample, to_plain
-
-DEFAULT_T0_NS = 1_700_000_000 * 10**9  # an epoch-like start: consumers must not keep stamps in float seconds
-
+from selfcal.sim.trajectories import DEFAULT_T0_NS, Trajectory, TrajectorySample, to_plain
 
 # --- noise -----------------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class ImuNoise:
-    """IMU noise in Kalibr's keys and meaning (continuous-time, per axis).
-
-    Defaults are ADIS16448-class MEMS figures: the noise densities of the EuRoC sensor.yaml, the random walks
-    of Kalibr's ADIS16448 example imu.yaml.
-    """
-
-    accelerometer_noise_density: float = 2.0e-3  # m s^-2 / sqrt(Hz)
-    gyroscope_noise_density: float = 1.6968e-4  # rad s^-1 / sqrt(Hz)
-    accelerometer_random_walk: float = 2.0e-4  # m s^-3 / sqrt(Hz)
-    gyroscope_random_walk: float = 4.0e-6  # rad s^-2 / sqrt(Hz)
-
-    KEYS = ("accelerometer_noise_density", "gyroscope_noise_density", "accelerometer_random_walk",
-            "gyroscope_random_walk")
-
-    @classmethod
-    def from_sensor_yaml(cls, meta: dict) -> ImuNoise:
-        """From a sensor.yaml dict; missing keys keep the defaults."""
-        return cls(**{k: float(meta[k]) for k in cls.KEYS if k in meta})
-
-    @classmethod
-    def zero(cls) -> ImuNoise:
-        return cls(0.0, 0.0, 0.0, 0.0)
-
-    def to_dict(self) -> dict:
-        return {k: float(getattr(self, k)) for k in self.KEYS}
-
-    def white_sigma(self, rate_hz: float) -> tuple[float, float]:
-        """Discrete per-sample sigma (accel m s^-2, gyro rad s^-1): ``density * sqrt(rate_hz)``."""
-        return (self.accelerometer_noise_density * np.sqrt(rate_hz),
-                self.gyroscope_noise_density * np.sqrt(rate_hz))
-
-    def walk_step_sigma(self, rate_hz: float) -> tuple[float, float]:
-        """Per-sample bias random-walk step (accel, gyro): ``random_walk * sqrt(1 / rate_hz)``."""
-        return (self.accelerometer_random_walk / np.sqrt(rate_hz), self.gyroscope_random_walk / np.sqrt(rate_hz))
-
 
 # --- environment: temperature and auxiliary channels -------------------------------------------------------------
 
@@ -215,7 +176,7 @@ class _Unit:
         """True (w, f) in this IMU's frame: lever arm in the imu0 frame, then rotated, ``v_imu = R^T v_imu0``."""
         f0 = sample.specific_force_S(gravity_m_s2)
         if np.any(self.r_m):
-            f0 = imu.specific_force_at_lever_arm(f0, sample.w_S, sample.w_dot_S, self.r_m)
+            f0 = inertial.specific_force_at_lever_arm(f0, sample.w_S, sample.w_dot_S, self.r_m)
         return sample.w_S @ self.R_imu0_imu, f0 @ self.R_imu0_imu
 
     def meta(self, gravity_m_s2: float) -> dict:
@@ -355,7 +316,7 @@ class ImuScenario(_ScenarioBase):
     gyro: GyroIntrinsics = field(default_factory=GyroIntrinsics)
     noise: ImuNoise = field(default_factory=ImuNoise)
     rate_hz: float = 200.0
-    gravity_m_s2: float = imu.STANDARD_GRAVITY_M_S2
+    gravity_m_s2: float = inertial.STANDARD_GRAVITY_M_S2
     temperature: Callable | None = None
     channels: dict = field(default_factory=dict)
     t0_ns: int = DEFAULT_T0_NS
@@ -389,7 +350,7 @@ class ImuPairScenario(_ScenarioBase):
     noise1: ImuNoise = field(default_factory=ImuNoise)
     rate_hz: float = 200.0
     rate1_hz: float | None = None
-    gravity_m_s2: float = imu.STANDARD_GRAVITY_M_S2
+    gravity_m_s2: float = inertial.STANDARD_GRAVITY_M_S2
     temperature: Callable | None = None
     channels0: dict = field(default_factory=dict)
     channels1: dict = field(default_factory=dict)

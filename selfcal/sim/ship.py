@@ -28,7 +28,7 @@ and heaves by ``z(t)``, so its acceleration is exact::
     a_W = v_dot [cos yaw, sin yaw, 0] + v yaw_dot [-sin yaw, cos yaw, 0] + z_ddot e_z
                 (surge)                   (centrifugal)                    (heave)
 
-The accelerometer sits at ``r_m`` (body frame) from the centre (:func:`selfcal.models.imu.specific_force_at_lever_arm`)::
+The accelerometer sits at ``r_m`` (body frame) from the centre (:func:`selfcal.core.inertial.specific_force_at_lever_arm`)::
 
     f_S = R_W_S^T (a_W + g e_z) + w_dot_S x r + w_S x (w_S x r)
 
@@ -59,9 +59,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from selfcal.core import inertial
 from selfcal.io.recording import Recording, SensorData, imu_sensor, write_recording
-from selfcal.models import imu
-from selfcal.sim.imu import DEFAULT_T0_NS, ImuNoise
+from selfcal.sim.trajectories import DEFAULT_T0_NS
+from selfcal.core.inertial import ImuNoise
 from selfcal.sim.trajectories import E_Z, Trajectory, TrajectorySample, smooth_step, to_plain
 
 KINDS = ("calm", "heave", "turning")
@@ -347,7 +348,7 @@ class ShipScenario:
                  noise: ImuNoise | None = None, speed_log_scale: float = 1.0, speed_log_noise_m_s: float = 0.05,
                  speed_log_rate_hz: float = 1.0, gps_rate_hz: float = 1.0, gps_speed_noise_m_s: float = 0.05,
                  roll_scale: float = 1.0, pitch_scale: float = 1.0, yaw_wave_scale: float = 1.0,
-                 heave_scale: float = 1.0, current_m_s=(0.0, 0.0), gravity_m_s2: float = imu.STANDARD_GRAVITY_M_S2,
+                 heave_scale: float = 1.0, current_m_s=(0.0, 0.0), gravity_m_s2: float = inertial.STANDARD_GRAVITY_M_S2,
                  t0_ns: int = DEFAULT_T0_NS, gyro_scale=(0.0, 0.0, 0.0)):
         self.kind, self.duration_s, self.rate_hz, self.seed = kind, float(duration_s), float(rate_hz), seed
         self.lever_arm_m = np.asarray(lever_arm_m, dtype=float).reshape(3)
@@ -400,7 +401,7 @@ class ShipScenario:
         w, w_dot = self.motion.body_rates(t)
         R = self.motion.R_W_S(t)
         f0 = np.einsum("nji,nj->ni", R, self.motion.acceleration_W(t) + self.gravity_m_s2 * E_Z)
-        return w, imu.specific_force_at_lever_arm(f0, w, w_dot, self.lever_arm_m)
+        return w, inertial.specific_force_at_lever_arm(f0, w, w_dot, self.lever_arm_m)
 
     def truth(self) -> dict:
         """Plain YAML-serialisable truth (no per-sample arrays: use truth_attitude / truth_gyro_bias)."""

@@ -33,11 +33,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from selfcal.core import inertial
 from selfcal.io.recording import Recording, SensorData, imu_sensor, write_recording
 from selfcal.core import so3
 from selfcal.models import tracker as mt
-from selfcal.models.imu import STANDARD_GRAVITY_M_S2
-from selfcal.sim.imu import DEFAULT_T0_NS
+from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
+from selfcal.sim.trajectories import DEFAULT_T0_NS
 from selfcal.sim.trajectories import E_Z, smooth_bump, to_plain
 
 CHUNK_S = 60.0
@@ -346,7 +347,7 @@ class TrackerScenario:
         sub = t[:, None] - np.arange(1, n_avg + 1)[None, ::-1] / rate  # IMU intervals covering [t - avg, t]
         _, f_sub = self._imu_exact(sub.ravel())
         f_mean = f_sub.reshape(len(t), n_avg, 3).mean(axis=1)
-        roll, pitch = mt.tilt_from_specific_force(f_mean)
+        roll, pitch = inertial.tilt_from_specific_force(f_mean)
         tilt = np.column_stack([roll, pitch])
         if self.incl_accel_sensitivity:  # over-/under-reaction to the non-gravitational part of the force
             euler = self.kinematics(t)[5]
@@ -381,7 +382,7 @@ class TrackerScenario:
         n_avg = max(1, int(round(self.incl_average_s * self.rates["imu0"])))
         sub = t_last - np.arange(1, n_avg + 1)[::-1] / self.rates["imu0"]
         _, f = self._imu_exact(sub)
-        roll, pitch = mt.tilt_from_specific_force(f.mean(axis=0))
+        roll, pitch = inertial.tilt_from_specific_force(f.mean(axis=0))
         return np.array([roll, pitch]) + self.incl_bias_rad
 
     def _chunks(self, seed):

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 from selfcal.core import so3
 
 E_Z = np.array([0.0, 0.0, 1.0])
+DEFAULT_T0_NS = 1_700_000_000 * 10**9  # an epoch-like start: consumers must not keep stamps in float seconds
 
 
 @dataclass(frozen=True)

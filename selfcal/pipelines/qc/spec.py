@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from selfcal.core.errors import SelfcalError
 
-class QCSpecError(ValueError):
+
+class QCSpecError(SelfcalError):
     """A QC spec file that cannot be used (unknown key, wrong type, inconsistent values)."""
 
 
