@@ -35,7 +35,7 @@ def fleet_times(n_units: int) -> dict:
         for i in range(n_units):
             shutil.copytree(RECORDING, Path(tmp) / f"unit_{i:03d}")
         items = fleet.fleet_items(tmp)
-        task = fleet.TASKS["calibrate-imu"]
+        task = fleet.tasks()["calibrate-imu"]
         start = time.perf_counter()
         serial = [fleet.run_task(task, item) for item in items]
         out = {"serial_s": time.perf_counter() - start}

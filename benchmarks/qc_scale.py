@@ -28,7 +28,8 @@ import numpy as np
 import open3d as o3d
 import yaml
 
-from selfcal.cli import QC_EXIT_CODES, main as selfcal_main
+from selfcal.cli.main import main as selfcal_main
+from selfcal.cli.qc import QC_EXIT_CODES
 from selfcal.io.pointcloud import write_point_cloud, write_triangle_mesh
 from selfcal.sim.qc import PlateWithSpheres
 

@@ -103,7 +103,7 @@ def run_smooth(rec_path: Path, out_ply: Path) -> tuple[object, dict]:
 
 
 def run_qc(argv: list[str]) -> tuple[int, str]:
-    from selfcal.cli import main as selfcal_main
+    from selfcal.cli.main import main as selfcal_main
     stdout = io.StringIO()
     with contextlib.redirect_stdout(stdout):
         code = selfcal_main(argv)
@@ -155,7 +155,7 @@ def main():
         qc_wall, qc_cpu = time.perf_counter() - w, cpu_seconds() - c
         total_wall, total_cpu = time.perf_counter() - wall0, cpu_seconds() - cpu0
         load1 = os.getloadavg()
-        from selfcal.cli import QC_EXIT_CODES
+        from selfcal.cli.qc import QC_EXIT_CODES
         if code not in QC_EXIT_CODES.values():  # 3 and 4 are verdicts (fail, incomplete), read from the JSON
             print(qc_stdout)
             raise SystemExit(f"selfcal qc failed with exit code {code}")

@@ -1,6 +1,6 @@
 """The command line: known mistakes give one line on stderr and exit code 1; the calibration YAML keeps its contract.
 
-Most checks run ``selfcal.cli.main`` in-process (stdout/stderr captured by capsys); one runs the installed
+Most checks run ``selfcal.cli.main.main`` in-process (stdout/stderr captured by capsys); one runs the installed
 ``selfcal`` console script in a subprocess, to prove the entry point declared in pyproject.toml.
 """
 import os
@@ -14,7 +14,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.graphs.imu import MIN_POSES_FULL_ACCEL
 from selfcal.io.recording import read_recording
 from selfcal.core.inertial import ImuNoise

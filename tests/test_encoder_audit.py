@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import chi2
 
 from selfcal.audit.engine import run_audit
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.pipelines import encoder as pe
 from selfcal.sim.encoder import EncoderScenario
 
@@ -19,7 +19,7 @@ TINY = dict(l=5, n_diodes=64, n_positions=24, cells_per_image=12.0)
 
 def audit(sc, seed=0):
     rec, _ = sc.perturbed_measurements(seed)
-    system = pe.encoder_audit_system(rec, frames={"array0": sc.perturbed_frames(seed)})
+    system = pe.audit_system(rec, frames={"array0": sc.perturbed_frames(seed)})
     return system, run_audit(system).to_json()
 
 

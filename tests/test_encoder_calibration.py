@@ -15,7 +15,7 @@ import yaml
 from scipy.stats import chi2
 
 from selfcal.baselines.encoder import patent_calibration, patent_measure
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.graphs.encoder import calibration as ge
 from selfcal.io.encoder import EncoderRecordingError
 from selfcal.io.recording import read_recording

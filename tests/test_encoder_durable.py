@@ -30,7 +30,7 @@ import pytest
 import yaml
 from scipy.stats import chi2
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.graphs.encoder import calibration as ge
 from selfcal.graphs.encoder import durable as ged
 from selfcal.pipelines import encoder as pe

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.io.recording import read_recording
 from selfcal.pipelines import fleet
 from selfcal.pipelines.imu import calibrate_imu

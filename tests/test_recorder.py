@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.io.recorder import Recorder, record_stream
 from selfcal.io.recording import RecordingError, read_recording, write_recording
 from selfcal.io.streams import replay

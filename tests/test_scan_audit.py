@@ -48,7 +48,7 @@ def test_accelerometer_scale_is_named_and_sized(tmp_path):
 
 
 def test_cli_audit_system_scan_is_wired():
-    from selfcal.cli import build_parser
-    from selfcal.pipelines.audit import SYSTEMS
-    assert "scan" in SYSTEMS
+    from selfcal.cli.main import build_parser
+    from selfcal import registry
+    assert "scan" in registry.names("audit")
     assert build_parser().parse_args(["audit", "REC", "--system", "scan", "--json", "x.json"]).system == "scan"

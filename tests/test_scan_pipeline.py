@@ -113,7 +113,7 @@ def test_cli_simulate_and_smooth_scan(tmp_path, capsys):
     """`selfcal simulate scan --out REC` then `selfcal smooth scan REC --out corrected.ply --estimates e.yaml`."""
     import yaml
 
-    from selfcal.cli import main
+    from selfcal.cli.main import main
     from selfcal.io.pointcloud import read_point_cloud
     rec = tmp_path / "rec"
     assert main(["simulate", "scan", "--out", str(rec), "--length", "4", "--spheres", "2", "--seed", "2"]) == 0

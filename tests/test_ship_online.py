@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.io.recording import read_recording
 from selfcal.io.streams import replay
 from selfcal.pipelines.ship import OnlineShipTracker

@@ -2,7 +2,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.sim.ship import ShipScenario
 
 

@@ -164,7 +164,7 @@ def test_flat_calibration_residuals_and_heldout_against_the_baseline(tmp_path, c
     """
     import yaml
 
-    from selfcal.cli import main
+    from selfcal.cli.main import main
     assert main(["calibrate", "stationing", str(HILTI / "flat.yaml"), "--heldout", str(HILTI / "flat.yaml"),
                  "--out", str(tmp_path / "cal.yaml")]) == 0
     assert "held out flat" in capsys.readouterr().out

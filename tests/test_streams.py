@@ -230,7 +230,7 @@ def test_the_examples_in_docs_parse():
 
 def test_cli_record_from_a_virtual_can_bus(tmp_path):
     """``selfcal record OUT --can CH --can-interface virtual``: frames sent by another node end up in incl0."""
-    from selfcal.cli import main
+    from selfcal.cli.main import main
     from selfcal.io.recording import read_recording
     channel = "selfcal_test_record"
     done = threading.Event()

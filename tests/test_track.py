@@ -4,15 +4,17 @@ The estimator here is a trivial consumer (a pose per tracker sample), so these t
 tracker's estimates; those are tested with the tracker system.
 """
 import json
+import sys
+import types
 
 import numpy as np
 import pytest
 import serial
 
-from selfcal.cli import main
+from selfcal import registry
+from selfcal.cli.main import main
 from selfcal.io.recording import write_recording
 from selfcal.io.streams import SerialLineSource, format_sentence, merge_live, replay
-from selfcal.pipelines import track
 from selfcal.pipelines.track import TrackError, run_track, tum_line
 
 from test_streams import _stop_after, small_recording
@@ -105,7 +107,11 @@ def test_live_serial_ports_feed_the_estimator_in_order(tmp_path):
 
 def test_cli_track_replay_with_a_registered_estimator(tmp_path, monkeypatch, capsys):
     write_recording(small_recording(), tmp_path / "rec")
-    monkeypatch.setitem(track.ESTIMATORS, "echo", EchoEstimator)
+    # a new online system is one registry line, its pipeline module with `online_estimator` and its cli module
+    monkeypatch.setattr(registry, "SYSTEMS", registry.SYSTEMS + (registry.System("echo", "test", online=True),))
+    monkeypatch.setitem(sys.modules, "selfcal.pipelines.echo",
+                        types.SimpleNamespace(online_estimator=lambda meta: EchoEstimator()))
+    monkeypatch.setitem(sys.modules, "selfcal.cli.echo", types.SimpleNamespace(VERBS=()))
     assert main(["track", "--replay", str(tmp_path / "rec"), "--system", "echo",
                  "--out-tum", str(tmp_path / "p.tum"), "--out-jsonl", str(tmp_path / "p.jsonl")]) == 0
     out = capsys.readouterr().out

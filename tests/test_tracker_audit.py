@@ -13,7 +13,7 @@ from scipy import stats
 
 from selfcal.core import inertial
 from selfcal.audit.engine import run_audit
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.audit.tracker import TrackerAudit
 from selfcal.factors import tracker as ft
 from selfcal.models import tracker as mt

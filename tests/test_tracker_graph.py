@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from selfcal.cli import main
+from selfcal.cli.main import main
 from selfcal.graphs.tracker import GatingOptions, TrackerOptions
 from selfcal.pipelines.tracker import OnlineTracker, noise_from_meta, patent_baseline, smooth_tracker
 from selfcal.sim.tracker import Fault, TrackerScenario

@@ -47,6 +47,18 @@ class ImuPairAudit:
     folds = 2
     base_model = "rotation"
 
+    @property
+    def diagnostics(self) -> dict:
+        return {"cross_correlation_lag_s": {
+            "value": self.initial_dt_s,
+            "meaning": "delay maximising the correlation of |w| of the two IMUs (rotation-invariant): the "
+                       "model-free estimate of t_imu0 - t_imu1, to compare with a time_offset finding"}}
+
+    def simulate(self, fit: Fit, seed: int, noise_fit: Fit | None = None) -> ImuPairAudit:
+        """The recording's scenario re-simulated with ``fit``'s model (:func:`simulate_pair_like`).  The pair has
+        no independent noise level: pass the final fit as ``noise_fit``, its residual is the best estimate."""
+        return simulate_pair_like(self, fit, seed, noise_fit)
+
     def __init__(self, d0: ImuData, d1: ImuData, lowpass_hz: float | None = 5.0):
         self.imu0, self.imu1 = d0.name, d1.name
         problem = gp.problem_from_imus(d0, d1, lowpass_hz)

@@ -1,23 +1,23 @@
-"""Use case ``selfcal audit``: fit the base model, search the catalog, measure against simulation, report."""
+"""Use case ``selfcal audit``: fit the base model, search the catalog, measure against simulation, report.
+
+The system is found by name in :mod:`selfcal.registry`; its pipeline module builds the audit system from the
+recording (``audit_system(recording, base, sensors)``), and the engine (:mod:`selfcal.audit.engine`) is the same
+for every system.
+"""
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 
-from selfcal.core import inertial
+from selfcal import registry
 from selfcal.audit.engine import AuditResult, run_audit
-from selfcal.audit.imu_pair import ImuPairAudit, simulate_pair_like
-from selfcal.audit.imu.static import ImuStaticAudit
-from selfcal.audit.noise import noise_audit
-from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit, simulate_like
+from selfcal.core.errors import SelfcalError
 from selfcal.io.recording import Recording
+from selfcal.pipelines.fleet import FleetError, register_task
 
 log = logging.getLogger(__name__)
-
-SYSTEMS = ("imu", "imu-pair", "encoder", "scan", "ship", "tracker")
 
 
 @dataclass
@@ -61,91 +61,28 @@ class AuditRun:
 
 def audit_recording(recording: Recording, system: str, base: str | None = None, sensors: list[str] | None = None,
                     progress=None, simulate_seed: int = 1) -> AuditRun:
-    """Audit one IMU (system ``imu``) or one pair of IMUs (``imu-pair``) of a recording."""
-    names = sensors or recording.imu_names()
-    if system == "imu":
-        data = recording.imu(names[0])
-        if is_static_log(data):
-            if base not in (None, "bias"):
-                raise ValueError(f"a static log is audited against the base model 'bias', not {base!r}")
-            audit_system = ImuStaticAudit(data)
-        else:
-            audit_system = ImuIntrinsicsAudit(data, float(data.meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
-                                              base or "bias")
-    elif system == "imu-pair":
-        if len(names) < 2:
-            raise ValueError(f"system imu-pair needs two IMUs, the recording has {names}")
-        if base not in (None, "rotation"):
-            raise ValueError(f"unknown base model {base!r} for system imu-pair: the base is 'rotation'")
-        audit_system = ImuPairAudit(recording.imu(names[0]), recording.imu(names[1]))
-    elif system == "encoder":
-        if base not in (None, "ml"):
-            raise ValueError(f"unknown base model {base!r} for system encoder: the base is 'ml'")
-        from selfcal.pipelines.encoder import encoder_audit_system
-        audit_system = encoder_audit_system(recording)
-    elif system == "scan":
-        if base not in (None, "error15"):
-            raise ValueError(f"unknown base model {base!r} for system scan: the base is 'error15'")
-        from selfcal.audit.scan import ScanAudit
-        from selfcal.pipelines.scan import read_scan, scan_problem
-        audit_system = ScanAudit(scan_problem(read_scan(recording)))
-    elif system == "ship":
-        if base not in (None, "attitude"):
-            raise ValueError(f"unknown base model {base!r} for system ship: the base is 'attitude'")
-        from selfcal.audit.ship import ShipAudit
-        from selfcal.pipelines.ship import ship_inputs
-        name = names[0] if names else "imu0"
-        audit_system = ShipAudit(ship_inputs(recording, name), sensor=name)
-    elif system == "tracker":
-        if base not in (None, "smoother"):
-            raise ValueError(f"unknown base model {base!r} for system tracker: the base is 'smoother'")
-        from selfcal.audit.tracker import TrackerAudit
-        from selfcal.pipelines.tracker import estimator_for_audit
-        audit_system = TrackerAudit(estimator_for_audit(recording))
-    else:
-        raise ValueError(f"unknown system {system!r}; known: {', '.join(SYSTEMS)}")
+    """Audit a recording as ``system`` (any system of :mod:`selfcal.registry` with an audit) against ``base``
+    (default: the system's first base model); ``sensors`` picks the IMU(s) where a system uses IMUs."""
+    entry = registry.system(system)
+    if not entry.audit:
+        raise registry.UnknownSystemError(f"system {system!r} has no audit; audited systems: "
+                                          f"{', '.join(registry.names('audit'))}")
+    base = base or entry.audit[0]
+    if base not in entry.audit:
+        raise SelfcalError(f"unknown base model {base!r} for system {system}: choose {' or '.join(entry.audit)}")
+    audit_system = entry.load("pipelines").audit_system(recording, base, sensors)
     result = run_audit(audit_system, progress=progress)
-    run = AuditRun(result)
-    if system == "encoder":
-        run.diagnostics.update(audit_system.diagnostics)
-    if isinstance(audit_system, ImuPairAudit):
-        run.diagnostics["cross_correlation_lag_s"] = {
-            "value": audit_system.initial_dt_s,
-            "meaning": "delay maximising the correlation of |w| of the two IMUs (rotation-invariant): the "
-                       "model-free estimate of t_imu0 - t_imu1, to compare with a time_offset finding"}
-    if isinstance(audit_system, (ImuIntrinsicsAudit, ImuPairAudit)):
-        if isinstance(audit_system, ImuIntrinsicsAudit):
-            simulate = simulate_like  # noise from the static samples' own scatter
-        else:  # the pair has no independent noise level: the final model's residual is its best estimate
-            simulate = partial(simulate_pair_like, noise_fit=result.final_fit)
-        run.simulation = measured_vs_simulated(audit_system, result, simulate, simulate_seed)
-    if isinstance(audit_system, ImuStaticAudit) and data.t_s[-1] >= NOISE_AUDIT_MIN_S:
-        for quantity, samples, key in (("gyro", data.gyro_rad_s, "gyroscope_noise_density"),
-                                       ("accel", data.accel_m_s2, "accelerometer_noise_density")):
-            if progress:
-                progress(f"Allan analysis of {data.name}/{quantity}")
-            run.noise.append(noise_audit(samples, data.rate_hz, quantity, sensor=data.name))
+    # optional hooks of an audit system: model-free diagnostics, a re-simulation of the recording's own
+    # scenario, and noise analyses beyond the residual search
+    run = AuditRun(result, diagnostics=dict(getattr(audit_system, "diagnostics", {})))
+    if hasattr(audit_system, "simulate"):
+        run.simulation = measured_vs_simulated(audit_system, result, simulate_seed)
+    if hasattr(audit_system, "noise_audits"):
+        run.noise = audit_system.noise_audits(progress)
     return run
 
 
-STATIC_LOG_MAX_TILT_DEG = 2.0
-NOISE_AUDIT_MIN_S = 300.0  # Allan analysis needs taus of minutes to see a bias wander
-
-
-def is_static_log(data) -> bool:
-    """One orientation throughout: the gravity direction of 1 s means never leaves a 2 deg cone."""
-    n = max(1, int(round(data.rate_hz)))
-    m = len(data.accel_m_s2) // n
-    if m < 10:
-        return False
-    means = data.accel_m_s2[:m * n].reshape(m, n, 3).mean(axis=1)
-    directions = means / np.linalg.norm(means, axis=1, keepdims=True)
-    mean = directions.mean(axis=0)
-    cos = directions @ (mean / np.linalg.norm(mean))
-    return bool(np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) < STATIC_LOG_MAX_TILT_DEG)
-
-
-def measured_vs_simulated(system, result: AuditResult, simulate, seed: int) -> list[dict]:
+def measured_vs_simulated(system, result: AuditResult, seed: int) -> list[dict]:
     """Residual RMS per family and axis: measured vs the recording's scenario simulated with the base and final
     models.
 
@@ -154,8 +91,8 @@ def measured_vs_simulated(system, result: AuditResult, simulate, seed: int) -> l
     the measurement really left.
     """
     base_effects, final_effects = result.base_fit.effects, result.final_effects
-    sim_base = simulate(system, result.base_fit, seed)
-    sim_final = simulate(system, result.final_fit, seed)
+    sim_base = system.simulate(result.base_fit, seed, noise_fit=result.final_fit)
+    sim_final = system.simulate(result.final_fit, seed, noise_fit=result.final_fit)
     columns = {"measured_base_fit": result.base_fit,
                "simulated_base_model_base_fit": sim_base.fit(base_effects),
                "simulated_final_model_base_fit": sim_final.fit(base_effects),
@@ -171,3 +108,38 @@ def measured_vs_simulated(system, result: AuditResult, simulate, seed: int) -> l
                 row[name] = float(np.sqrt(np.mean(other.physical[:, j] ** 2))) if other is not None else None
             table.append(row)
     return table
+
+
+# --- fleet ------------------------------------------------------------------------------------------------------
+
+def audit_task(recording_path, options: dict) -> dict:
+    """``selfcal audit`` (option ``system``: any audited system; ``base``, ``imu``, ``imu1``) as columns.
+
+    Columns: ``findings`` (count), ``effects`` (``effect@target`` in the order found), ``final_model``, and per
+    residual family the RMS of the base model (``rms_before_<family>``) and of the final one (``rms_after_``).
+    """
+    from selfcal.io.recording import read_recording
+    if not options.get("system"):
+        raise FleetError(f"task audit needs the option system ({', '.join(registry.names('audit'))}): --system imu")
+    rec = read_recording(recording_path)
+    sensors = [options[k] for k in ("imu", "imu1") if options.get(k)] or None
+    run = audit_recording(rec, options["system"], options.get("base"), sensors)
+    contract = run.to_json()
+    out = {"system": contract["system"], "base_model": contract["base_model"],
+           "findings": len(contract["findings"]),
+           "effects": "; ".join(f"{f['effect']}@{f.get('target', f.get('sensor', ''))}"
+                                for f in contract["findings"]),
+           "final_model": "; ".join(contract["final_model"])}
+    for fam in run.result.base_fit.families:
+        out[f"rms_before_{_column(fam.label)}"] = float(fam.rms)
+    for fam in run.result.final_fit.families:
+        out[f"rms_after_{_column(fam.label)}"] = float(fam.rms)
+    return out
+
+
+def _column(label: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in label).strip("_")
+
+
+register_task("audit", audit_task, ("system", "base", "imu", "imu1"),
+              "residual audit: findings, effect names, residual RMS before/after", required=("system",))

@@ -20,7 +20,8 @@ from selfcal.baselines.encoder import patent_calibration
 from selfcal.graphs.encoder import calibration as ge
 from selfcal.graphs.encoder import durable as ged
 from selfcal.io.encoder import EncoderRecordingError, read_encoder_arrays, read_reference
-from selfcal.io.recording import Recording
+from selfcal.io.recording import Recording, read_recording
+from selfcal.pipelines.fleet import flat_columns, register_task
 from selfcal.models import encoder as enc
 from selfcal.sim.encoder import EncoderScenario
 
@@ -330,8 +331,9 @@ def _updated_calibration(calibration: dict, covariance: np.ndarray, array: str, 
     return out, cov
 
 
-def encoder_audit_system(rec: Recording, frames: dict | None = None):
-    """The audit's view of an encoder recording: decoded frames, the patent's start values, the ML base fit."""
+def audit_system(rec: Recording, base: str = "ml", sensors: list[str] | None = None, frames: dict | None = None):
+    """The audit's view of an encoder recording: decoded frames, the patent's start values, the ML base fit
+    (the only base; ``sensors`` is not used: every array of the recording is audited)."""
     from selfcal.audit.encoder import EncoderAudit
     problem = problem_from_recording(rec, frames, use_reference=False)
     a0 = problem.arrays[0]
@@ -339,3 +341,23 @@ def encoder_audit_system(rec: Recording, frames: dict | None = None):
     beta = np.where(np.isfinite(base.beta_rad), base.beta_rad, problem.beta0)
     geometry = [base.geometry] + [a.geometry_nominal for a in problem.arrays[1:]]
     return EncoderAudit(problem, {"edges": base.edges_rad, "beta": beta, "geometry": geometry})
+
+
+# --- fleet ------------------------------------------------------------------------------------------------------
+
+def calibrate_encoder_task(recording_path, options: dict) -> dict:
+    """``selfcal calibrate encoder`` as columns: per array the geometry, aperture and dark level with their
+    sigmas and the residual; the graduation error's RMS and largest value, the median edge sigma, frames."""
+    cal = calibrate_encoder(read_recording(recording_path), use_reference=options.get("reference", True))
+    d = cal.to_dict()
+    graduation = np.asarray(d["graduation_error_rad"])
+    sigma = np.array([np.nan if s is None else s for s in d["edges_sigma_rad"]], dtype=float)
+    return {"edges": d["code"]["n_edges"], "graduation_rms_rad": float(np.sqrt(np.mean(graduation**2))),
+            "graduation_max_rad": float(np.max(np.abs(graduation))),
+            "edge_sigma_median_rad": float(np.nanmedian(sigma)),
+            "frames_used": d["frames"]["used"], "frames_flagged": len(d["frames"]["flagged"]),
+            "seconds": d["seconds"], **flat_columns({"arrays": d["arrays"]})}
+
+
+register_task("calibrate-encoder", calibrate_encoder_task, ("reference",),
+              "encoder self-calibration from the diode array's own images")

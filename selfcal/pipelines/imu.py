@@ -8,7 +8,9 @@ import numpy as np
 
 from selfcal.core import inertial
 from selfcal.graphs import imu as gi
-from selfcal.io.recording import ImuData, Recording
+from selfcal.core.errors import SelfcalError
+from selfcal.io.recording import ImuData, Recording, RecordingError, read_recording
+from selfcal.pipelines.fleet import flat_columns, register_task, sensor_option
 from selfcal.models import imu
 
 log = logging.getLogger(__name__)
@@ -83,3 +85,38 @@ def calibrate_imu(recording: Recording, sensor: str, spec: gi.IntrinsicsSpec = g
     problem = gi.problem_from_imu(data, gravity_of(data, gravity_m_s2))
     estimate = gi.solve_intrinsics(problem.poses, problem.moves, problem.gravity_m_s2, spec)
     return ImuCalibration(sensor, estimate, len(problem.poses), problem.gravity_m_s2, data.meta.get("raw_counts"))
+
+
+def audit_system(recording: Recording, base: str, sensors: list[str] | None = None):
+    """The audit's view of one IMU (``sensors[0]``, default the first): a static log (one orientation
+    throughout: bias and noise) or a multi-position recording (intrinsics)."""
+    from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
+    from selfcal.audit.imu.static import ImuStaticAudit, is_static_log
+    data = recording.imu(_imu_names(recording, sensors, 1)[0])
+    if is_static_log(data):
+        if base != "bias":
+            raise SelfcalError(f"{data.name}: a static log is audited against the base model 'bias', not {base!r}")
+        return ImuStaticAudit(data)
+    return ImuIntrinsicsAudit(data, gravity_of(data), base)
+
+
+def _imu_names(recording: Recording, sensors: list[str] | None, count: int) -> list[str]:
+    """The IMUs to use: the ones given, else the recording's first ``count``."""
+    names = list(sensors or recording.imu_names())
+    if len(names) < count:
+        raise RecordingError(f"{recording.path}: needs {count} IMU sensor folder(s), found {names}")
+    return names[:count]
+
+
+# --- fleet ------------------------------------------------------------------------------------------------------
+
+def calibrate_imu_task(recording_path, options: dict) -> dict:
+    """IMU intrinsics (``selfcal calibrate imu``) of one IMU (option ``imu``, default the first), flattened."""
+    rec = read_recording(recording_path)
+    sensor = sensor_option(rec, options, "imu", 0)
+    d = calibrate_imu(rec, sensor, gravity_m_s2=options.get("gravity")).to_dict()
+    d.pop("units")
+    return {"sensor": sensor, **flat_columns(d)}
+
+
+register_task("calibrate-imu", calibrate_imu_task, ("imu", "gravity"), "IMU intrinsics from a multi-position recording")

@@ -20,8 +20,9 @@ from selfcal.core.inertial import ImuNoise
 from selfcal.sim.imu import ImuPairScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
 from selfcal.core.solve import DegenerateDataError
-from selfcal.io.recording import Recording
-from selfcal.pipelines.imu import nested_list
+from selfcal.io.recording import Recording, read_recording
+from selfcal.pipelines.imu import _imu_names, nested_list
+from selfcal.pipelines.fleet import flat_columns, register_study, register_task, sensor_option
 
 
 # --- calibration ---------------------------------------------------------------------------------------------
@@ -227,3 +228,52 @@ def imu_pair_rotation_study(n_runs: int, scenario: ImuPairScenario | None = None
         t_patent += time.perf_counter() - start
         errors_patent.append(so3.log(R_true.T @ baseline.R_imu0_imu1))
     return RotationStudy(np.array(errors), np.array(nees), bound, np.array(errors_patent), t_graph, t_patent)
+
+
+def audit_system(recording: Recording, base: str, sensors: list[str] | None = None):
+    """The audit's view of two IMUs (``sensors``, default the recording's first two) against the rotation."""
+    from selfcal.audit.imu_pair import ImuPairAudit
+    imu0, imu1 = _imu_names(recording, sensors, 2)
+    return ImuPairAudit(recording.imu(imu0), recording.imu(imu1))
+
+
+# --- fleet and Monte Carlo on dask ------------------------------------------------------------------------------
+
+def calibrate_imu_pair_task(recording_path, options: dict) -> dict:
+    """Rotation (time offset, lever arm) between two IMUs (``selfcal calibrate imu-pair``), flattened.
+
+    Options as the command: ``imu0``, ``imu1`` (default the first two), ``lever_arm``, ``time_offset``,
+    ``gains`` (true / false / unset = where the data determine it), ``lowpass_hz`` (default 5, 0: none).
+    """
+    rec = read_recording(recording_path)
+    imu0, imu1 = sensor_option(rec, options, "imu0", 0), sensor_option(rec, options, "imu1", 1)
+    lowpass = options.get("lowpass_hz", 5.0)
+    cal = calibrate_imu_pair(rec, imu0, imu1, lever_arm=options.get("lever_arm"),
+                             time_offset=options.get("time_offset"), lowpass_hz=float(lowpass) or None,
+                             gains=options.get("gains", False))
+    d = cal.to_dict()
+    for key in ("rotation_convention", "time_offset_convention"):
+        d.pop(key)
+    for gain in d["relative_gain_imu1"].values():
+        gain.pop("meaning")
+    rotation_vector = so3.log(np.asarray(cal.estimate.R_imu0_imu1))
+    return {"rotation_angle_deg": float(np.degrees(np.linalg.norm(rotation_vector))),
+            **flat_columns({"rotation_vector_rad": rotation_vector}), **flat_columns(d)}
+
+
+def _rotation_study_block(n_runs: int, first_seed: int, **params) -> RotationStudy:
+    return imu_pair_rotation_study(n_runs, first_seed=first_seed, **params)
+
+
+def _combine_rotation_studies(blocks: list[RotationStudy]) -> RotationStudy:
+    return RotationStudy(errors_graph=np.concatenate([b.errors_graph for b in blocks]),
+                         nees=np.concatenate([b.nees for b in blocks]), bound_cov=blocks[0].bound_cov,
+                         errors_patent=np.concatenate([b.errors_patent for b in blocks]),
+                         seconds_graph=sum(b.seconds_graph for b in blocks),
+                         seconds_patent=sum(b.seconds_patent for b in blocks))
+
+
+register_task("calibrate-imu-pair", calibrate_imu_pair_task,
+              ("imu0", "imu1", "lever_arm", "time_offset", "gains", "lowpass_hz"),
+              "rotation (time offset, lever arm) between two IMUs")
+register_study("imu-pair-rotation", _rotation_study_block, _combine_rotation_studies)

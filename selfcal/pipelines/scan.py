@@ -368,3 +368,9 @@ def inertial_only_points(recording: Recording) -> np.ndarray:
     data = read_scan(recording)
     R, r = ms.interpolate_poses(data.clock_t_s, data.ins_t_s, data.ins_R, data.ins_r)
     return data.world_points(R, r)[0]
+
+
+def audit_system(recording: Recording, base: str = "error15", sensors: list[str] | None = None):
+    """The audit's view of a scan recording: the 15 INS error terms and sphere centres as the base model."""
+    from selfcal.audit.scan import ScanAudit
+    return ScanAudit(scan_problem(read_scan(recording)))

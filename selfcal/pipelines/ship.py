@@ -183,3 +183,15 @@ def _centred_slope(t_s: np.ndarray, x: np.ndarray, t0_s: float) -> np.ndarray:
     V = np.stack([np.ones_like(tau), tau, tau**2], axis=1)
     coef, *_ = np.linalg.lstsq(V, x, rcond=None)
     return coef[1]
+
+
+def audit_system(recording: Recording, base: str = "attitude", sensors: list[str] | None = None):
+    """The audit's view of a voyage: the attitude graph of the IMU ``sensors[0]`` (default the first)."""
+    from selfcal.audit.ship import ShipAudit
+    names = list(sensors or recording.imu_names()) or ["imu0"]
+    return ShipAudit(ship_inputs(recording, names[0]), sensor=names[0])
+
+
+def online_estimator(meta: dict[str, dict]):
+    """``selfcal track --system ship``: the fixed-lag attitude smoother fed sample by sample."""
+    return OnlineShipTracker(meta)

@@ -3,8 +3,8 @@
 The estimator is anything with ``push(sensor_name, t_ns, values) -> list[dict]`` consuming samples in timestamp
 order; each output dict holds ``t_ns``, ``position`` (3), ``quaternion`` (qx, qy, qz, qw: TUM's order, as
 :class:`selfcal.pipelines.tracker.OnlineTracker` gives it), ``covariance`` (6x6) and fault flags.  Systems are
-looked up in :data:`ESTIMATORS` (``tracker`` now; ``ship`` can be added with the same interface): a factory
-taking the sensors' sensor.yaml contents (``{sensor: meta}``, from the replayed recording or ``--sensors-from``).
+found by name in :mod:`selfcal.registry` (those with ``online``): their pipeline module's ``online_estimator``
+takes the sensors' sensor.yaml contents (``{sensor: meta}``, from the replayed recording or ``--sensors-from``).
 
 Outputs are streams, not results: each line is appended and flushed as soon as the estimator gives it, so a
 killed tracker leaves every pose computed before the kill (atomic whole-file writes would leave nothing).
@@ -20,22 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from selfcal import registry
 from selfcal.core.errors import SelfcalError
 
 log = logging.getLogger(__name__)
-
-
-def _tracker_estimator(meta: dict[str, dict]):
-    from selfcal.pipelines.tracker import OnlineTracker, noise_from_meta
-    return OnlineTracker(noise=noise_from_meta(meta))
-
-
-def _ship_estimator(meta: dict[str, dict]):
-    from selfcal.pipelines.ship import OnlineShipTracker
-    return OnlineShipTracker(meta)
-
-
-ESTIMATORS: dict[str, Callable[[dict[str, dict]], object]] = {"tracker": _tracker_estimator, "ship": _ship_estimator}
 
 
 class TrackError(SelfcalError):
@@ -80,10 +68,12 @@ class TrackResult:
 
 
 def make_estimator(system: str, meta: dict[str, dict] | None = None):
-    """The online estimator of ``system`` (see :data:`ESTIMATORS`), configured from sensor.yaml contents."""
-    if system not in ESTIMATORS:
-        raise TrackError(f"no online estimator for system {system!r}; known: {', '.join(sorted(ESTIMATORS))}")
-    return ESTIMATORS[system](meta or {})
+    """The online estimator of ``system`` (a system of :mod:`selfcal.registry` with ``online``; its pipeline
+    module's ``online_estimator``), configured from sensor.yaml contents."""
+    online = registry.names("online")
+    if system not in online:
+        raise TrackError(f"no online estimator for system {system!r}; known: {', '.join(online)}")
+    return registry.system(system).load("pipelines").online_estimator(meta or {})
 
 
 def sensor_meta(recording_path) -> dict[str, dict]:

@@ -209,3 +209,14 @@ def estimator_for_audit(recording: Recording, keyframe_s: float = 0.2) -> Tracke
     if tracker.estimator.k < 0:
         raise RecordingError(f"{recording.path}: no pose: the tracker, inclinometer and camera never all reported")
     return tracker.estimator
+
+
+def audit_system(recording: Recording, base: str = "smoother", sensors: list[str] | None = None):
+    """The audit's view of a tracker recording: the ungated online pass with every factor kept."""
+    from selfcal.audit.tracker import TrackerAudit
+    return TrackerAudit(estimator_for_audit(recording))
+
+
+def online_estimator(meta: dict[str, dict]):
+    """``selfcal track --system tracker``: the gated online estimator, configured from sensor.yaml contents."""
+    return OnlineTracker(noise=noise_from_meta(meta))

@@ -69,6 +69,11 @@ class ImuIntrinsicsAudit:
         blocks = np.array_split(np.arange(n), self.folds)
         self._fold_poses = [[k for k in range(n) if k not in set(b)] for b in blocks]
 
+    def simulate(self, fit: Fit, seed: int, noise_fit: Fit | None = None) -> ImuIntrinsicsAudit:
+        """The recording's scenario re-simulated with ``fit``'s model (:func:`simulate_like`; the noise comes from
+        the static samples' own scatter, so ``noise_fit`` is not needed)."""
+        return simulate_like(self, fit, seed)
+
     # --- catalog --------------------------------------------------------------------------------------------
 
     def candidates(self) -> list[Candidate]:

@@ -14,11 +14,27 @@ import numpy as np
 
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.audit.imu.intrinsics import MEANINGS, is_temperature
+from selfcal.audit.noise import noise_audit
 from selfcal.factors.imu import linear_bias_factor
 from selfcal.core.solve import gaussian, marginal_covariances, optimize
 from selfcal.io.recording import ImuData
 
 QUANTITIES = {"accel": ("m s^-2", "accel_m_s2"), "gyro": ("rad s^-1", "gyro_rad_s")}
+STATIC_LOG_MAX_TILT_DEG = 2.0
+NOISE_AUDIT_MIN_S = 300.0  # Allan analysis needs taus of minutes to see a bias wander
+
+
+def is_static_log(data: ImuData) -> bool:
+    """One orientation throughout: the gravity direction of 1 s means never leaves a 2 deg cone."""
+    n = max(1, int(round(data.rate_hz)))
+    m = len(data.accel_m_s2) // n
+    if m < 10:
+        return False
+    means = data.accel_m_s2[:m * n].reshape(m, n, 3).mean(axis=1)
+    directions = means / np.linalg.norm(means, axis=1, keepdims=True)
+    mean = directions.mean(axis=0)
+    cos = directions @ (mean / np.linalg.norm(mean))
+    return bool(np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) < STATIC_LOG_MAX_TILT_DEG)
 
 
 class ImuStaticAudit:
@@ -26,6 +42,7 @@ class ImuStaticAudit:
     folds = 2
 
     def __init__(self, data: ImuData, segment_s: float = 5.0):
+        self.data = data
         self.sensor = data.name
         self.base_model = "bias"
         self.base_effects = ()
@@ -130,3 +147,15 @@ class ImuStaticAudit:
         return ({"slope": fit.values.atVector(key).tolist(), "unit": f"{QUANTITIES[candidate.target][0]} per {per}",
                  "target": f"{self.sensor}/{candidate.target}"},
                 {"slope": np.sqrt(np.diag(cov)).tolist()})
+
+    def noise_audits(self, progress=None) -> list:
+        """Allan analysis of gyro and accelerometer when the log is long enough to show a bias wander."""
+        data = self.data
+        if data.t_s[-1] < NOISE_AUDIT_MIN_S:
+            return []
+        out = []
+        for quantity, samples in (("gyro", data.gyro_rad_s), ("accel", data.accel_m_s2)):
+            if progress:
+                progress(f"Allan analysis of {data.name}/{quantity}")
+            out.append(noise_audit(samples, data.rate_hz, quantity, sensor=data.name))
+        return out

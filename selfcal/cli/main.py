@@ -1,0 +1,75 @@
+"""``selfcal <verb> ...``: the parser, built from the verbs each module declares, and the one error handler.
+
+Verbs come from two places.  Every system of :mod:`selfcal.registry` declares its own in ``cli/<system>.py``
+(``VERBS``): a verb named after a group below becomes ``selfcal <group> <system>``, any other name a
+top-level command.  The verbs that serve every system (audit, import, record, track, fleet) live in the
+modules of :data:`SHARED`.  Known errors (:data:`selfcal.core.errors.USER_ERRORS`) print one line and exit 1.
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+from selfcal import registry
+from selfcal.cli.common import Parser, Verb
+
+GROUPS = {  # verbs that take a system as their next word
+    "calibrate": "calibrate a sensor system from a recording",
+    "smooth": "smooth a recording offline (or replay it online with --online)",
+    "simulate": "write a simulated recording (ground truth in truth/)",
+    "measure": "measure with a calibrated instrument",
+}
+SHARED = ("audit", "importers", "streams", "fleet")  # cli modules of the verbs every system shares
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("selfcal")
+    except PackageNotFoundError:  # running from a source tree that was never installed
+        return "unknown"
+
+
+def _add_verb(subparsers, name: str, verb: Verb) -> None:
+    p = subparsers.add_parser(name, help=verb.help, description=verb.help, epilog=verb.epilog)
+    verb.arguments(p)
+    p.set_defaults(run=verb.run)
+
+
+def build_parser() -> Parser:
+    parser = Parser(prog="selfcal", description="Instrument self-calibration and sensor fusion as GTSAM factor "
+                                                "graphs, and an audit of what the model gets wrong.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="progress and diagnostics on stderr")
+    parser.add_argument("--version", action="version", version=f"selfcal {_version()}")
+    verbs = parser.add_subparsers(dest="verb", required=True, parser_class=Parser)
+    groups = {name: verbs.add_parser(name, help=text, description=text).add_subparsers(
+        dest="system", required=True, parser_class=Parser) for name, text in GROUPS.items()}
+    for module in SHARED:
+        for verb in importlib.import_module(f"selfcal.cli.{module}").VERBS:
+            _add_verb(verbs, verb.name, verb)
+    for system in registry.SYSTEMS:
+        for verb in system.load("cli").VERBS:
+            _add_verb(groups[verb.name] if verb.name in groups else verbs,
+                      system.name if verb.name in groups else verb.name, verb)
+    return parser
+
+
+def main(argv=None) -> int:
+    from selfcal.core.errors import USER_ERRORS
+    try:
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        code = args.run(args)
+    except USER_ERRORS as err:
+        print(f"selfcal: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("selfcal: interrupted", file=sys.stderr)
+        return 130
+    return code or 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""``selfcal smooth ship``: vessel attitude and gyro drift from gyro + accelerometer tilt (patent 003)."""
+from __future__ import annotations
+
+from selfcal.cli.common import Verb, output
+
+
+def smooth_arguments(p) -> None:
+    p.add_argument("recording")
+    p.add_argument("--imu", default="imu0")
+    p.add_argument("--online", action="store_true", help="iSAM2, keyframe by keyframe, as a live system would")
+    p.add_argument("--keep-known-acceleration", action="store_true",
+                   help="do not subtract surge and centripetal acceleration from speed log / GPS and yaw rate")
+    p.add_argument("--out", help="TUM trajectory file (t x y z qx qy qz qw)")
+
+
+def smooth(args) -> None:
+    import numpy as np
+
+    from selfcal.io.atomic import atomic_write_text
+    from selfcal.io.recording import read_recording
+    from selfcal.pipelines.ship import smooth_ship, tum_text
+    rec = read_recording(args.recording)
+    est = smooth_ship(rec, online=args.online, remove_known_acceleration=not args.keep_known_acceleration,
+                      imu_name=args.imu)
+    print(f"{len(est.t_s)} attitudes over {est.t_s[-1] - est.t_s[0]:.0f} s in {est.seconds:.1f} s "
+          f"({'iSAM2 online' if args.online else 'batch'}); final gyro bias "
+          f"{np.degrees(est.gyro_bias[-1]) * 3600} deg/h")
+    if args.out:
+        atomic_write_text(output(args.out), tum_text(est, int(rec.sensors[args.imu].t_ns[0])))
+        print(f"trajectory: {args.out}")
+
+
+VERBS = (Verb("smooth", "vessel attitude and gyro drift from gyro + accelerometer tilt", smooth_arguments, smooth),)

@@ -1,0 +1,96 @@
+"""``selfcal record`` and ``selfcal track``: live streams (serial, CAN) or a replayed recording (docs/streams.md)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from selfcal import registry
+from selfcal.cli.common import UsageError, Verb
+
+
+def stream_arguments(p) -> None:
+    """The sources a live command reads from (repeatable serial ports, one CAN channel, or a replay)."""
+    sources = p.add_argument_group("sources")
+    sources.add_argument("--serial", action="append", metavar="PORT[:BAUD][,TYPE=sensor...]",
+                         help="serial port speaking the line protocol of docs/streams.md (repeatable); e.g. "
+                              "/dev/ttyUSB0:115200,IMU=imu0,TRK=tracker0 (default mapping IMU=imu0,INC=incl0,"
+                              "TRK=tracker0,CAM=cam0)")
+    sources.add_argument("--can", metavar="CHANNEL", help="CAN channel of a CANopen-style inclinometer (e.g. can0)")
+    sources.add_argument("--can-interface", default="socketcan", help="python-can interface: socketcan (default), "
+                                                                       "virtual, ...")
+    sources.add_argument("--can-node", type=int, default=1,
+                         help="CANopen node id (TPDO1 COB-ID 0x180+node), default 1")
+    sources.add_argument("--can-sensor", default="incl0", help="sensor name of the CAN inclinometer (default incl0)")
+    sources.add_argument("--replay", metavar="REC", help="replay a recording (as fast as possible unless --realtime)")
+    sources.add_argument("--realtime", action="store_true", help="replay at the recording's own pace")
+    sources.add_argument("--speed", type=float, default=1.0, help="with --realtime: playback speed factor")
+    sources.add_argument("--max-samples", type=int, help="stop after this many samples")
+
+
+def open_stream(args, max_samples=None):
+    from selfcal.io.streams import open_stream as open_sources
+    if not (args.serial or args.can or args.replay):
+        raise UsageError("no source: give --serial PORT[:BAUD][,TYPE=sensor...], --can CHANNEL and/or --replay REC")
+    return open_sources(serial=args.serial, can_channel=args.can, can_interface=args.can_interface,
+                        can_node=args.can_node, can_sensor=args.can_sensor, replay_path=args.replay,
+                        realtime=args.realtime, speed=args.speed, max_samples=max_samples)
+
+
+def print_stream_stats(stream) -> None:
+    for s in stream.stats():
+        if s.malformed or s.late or s.ignored:
+            print(f"{s.name}: {s.samples} samples, {s.malformed} malformed skipped, {s.late} late dropped, "
+                  f"{s.ignored} foreign frames ignored")
+
+
+def record_arguments(p) -> None:
+    p.add_argument("out", help="recording folder (created, or appended to: never overwritten)")
+    stream_arguments(p)
+    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+
+
+def record(args) -> None:
+    from selfcal.io.recorder import record_stream
+    stream = open_stream(args)
+    try:
+        counts = record_stream(stream.samples, Path(args.out), duration_s=args.duration, max_samples=args.max_samples)
+    finally:
+        stream.close()
+    for name, c in counts.items():
+        print(f"{name}: {c['written']} samples written" + (f", {c['dropped']} dropped" if c["dropped"] else "")
+              + (f", cut a partial line of {c['repaired_bytes']} bytes" if c["repaired_bytes"] else ""))
+    print_stream_stats(stream)
+
+
+def track_arguments(p) -> None:
+    stream_arguments(p)
+    # not `choices`: an unknown name is refused by pipelines.track.make_estimator, which names the known ones
+    p.add_argument("--system", default="tracker",
+                   help=f"online estimator, one of {', '.join(registry.names('online'))} (default: tracker)")
+    outputs = p.add_argument_group("outputs")
+    outputs.add_argument("--out-tum", help="poses, TUM format (t x y z qx qy qz qw), appended line by line")
+    outputs.add_argument("--out-jsonl", help="one JSON object per pose: covariance and fault flags included")
+    outputs.add_argument("--append", action="store_true", help="continue existing output files")
+    p.add_argument("--sensors-from", metavar="REC", help="recording whose sensor.yaml files configure the "
+                                                         "estimator (default: the --replay recording)")
+
+
+def track(args) -> None:
+    from selfcal.pipelines.track import make_estimator, run_track, sensor_meta
+    if not args.out_tum and not args.out_jsonl:
+        raise UsageError("nothing to write: give --out-tum POSES.tum and/or --out-jsonl POSES.jsonl")
+    meta_from = args.sensors_from or args.replay
+    estimator = make_estimator(args.system, sensor_meta(meta_from) if meta_from else {})
+    stream = open_stream(args, max_samples=args.max_samples)
+    try:
+        result = run_track(stream.samples, estimator, out_tum=args.out_tum, out_jsonl=args.out_jsonl,
+                           append=args.append)
+    finally:
+        stream.close()
+    print(result.summary())
+    print_stream_stats(stream)
+
+
+VERBS = (
+    Verb("record", "record live streams (serial, CAN) into a recording folder, append-safe", record_arguments, record),
+    Verb("track", "online pose estimation from live streams or a replayed recording", track_arguments, track),
+)
