@@ -7,7 +7,8 @@ import open3d as o3d
 import pytest
 
 from selfcal.io.pointcloud import LoadedCloud, cloud_from_points, write_point_cloud, write_triangle_mesh
-from selfcal.pipelines.qc.checks import run_qc, signed_distances_to_mesh, trimmed_range
+from selfcal.pipelines.qc.checks import run_qc
+from selfcal.pipelines.qc.figures import signed_distances_to_mesh, trimmed_range
 from selfcal.pipelines.qc.report import deviation_png, render_html, render_markdown
 from selfcal.pipelines.qc.spec import QCSpec, QCSpecError
 from selfcal.sim.qc import PlateWithSpheres
@@ -184,7 +185,7 @@ def test_spec_yaml_reads_exponent_numbers(tmp_path):
 
 
 def test_cli_qc_writes_every_report(tmp_path, reference):
-    from selfcal.cli import main
+    from selfcal.cli.main import main
     import yaml
     pts, _ = ART.scan(60_000, sigma_m=SIGMA, seed=7)
     pts[:5] = np.nan
@@ -203,7 +204,7 @@ def test_cli_qc_writes_every_report(tmp_path, reference):
 
 def test_cli_qc_exit_status_follows_the_verdict(tmp_path, reference):
     """A failed part exits 3 (a CI job stops on it) and still gets its report; an unjudged run exits 0."""
-    from selfcal.cli import main
+    from selfcal.cli.main import main
     import yaml
     pts, _ = ART.scan(60_000, sigma_m=SIGMA, seed=7)
     write_point_cloud(tmp_path / "scan.ply", pts)
@@ -217,7 +218,7 @@ def test_cli_qc_exit_status_follows_the_verdict(tmp_path, reference):
 
 
 def test_cli_qc_bad_input_is_one_line_exit_1(tmp_path, capsys):
-    from selfcal.cli import main
+    from selfcal.cli.main import main
     (tmp_path / "empty.ply").write_text("")
     assert main(["qc", str(tmp_path / "empty.ply"), "--json", str(tmp_path / "o.json")]) == 1
     err = capsys.readouterr().err.strip().splitlines()

@@ -279,6 +279,117 @@ def _spheres_from_3(samples: np.ndarray, radius_m: float) -> np.ndarray:
     return np.concatenate([cc + h[:, None] * unit_n, cc - h[:, None] * unit_n])
 
 
+def _hypotheses(pts: np.ndarray, radius_m: float | None, count: int, rng: np.random.Generator,
+                radius_bounds_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Hypothesis generation: spheres through ``count`` random minimal samples of ``pts``.
+
+    A minimal sample is 4 points (radius estimated) or 3 points, which give both spheres of the known radius
+    through them.  Degenerate samples and radii outside ``radius_bounds_m`` are dropped.
+
+    Returns
+    -------
+    (np.ndarray, np.ndarray)
+        Centres (H, 3) and radii (H,), m; H may be 0.
+    """
+    s = 3 if radius_m is not None else 4
+    # indices drawn with replacement: a repeated point makes a degenerate sample, discarded below
+    samples = pts[rng.integers(0, len(pts), size=(count, s))]
+    if s == 4:
+        centres, radii = _spheres_from_4(samples)
+    else:
+        centres = _spheres_from_3(samples, radius_m)
+        radii = np.full(len(centres), float(radius_m))
+    lo, hi = radius_bounds_m
+    ok = np.isfinite(centres).all(axis=1) & (radii >= lo) & (radii <= hi)
+    return centres[ok], radii[ok]
+
+
+def _msac_costs(points_m: np.ndarray, centres_m: np.ndarray, radii_m: np.ndarray,
+                threshold_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC score of each hypothesis: ``sum_i min(e_i^2, t^2)`` (Torr and Zisserman's truncated quadratic).
+
+    Unlike the RANSAC inlier count, an inlier costs its squared residual, so of two hypotheses with the same
+    support the one closer to the points wins.
+
+    Returns
+    -------
+    (np.ndarray, np.ndarray)
+        Costs (H,), m^2, and the squared residuals (H, M) of the points under each hypothesis.
+    """
+    # (H, M) residuals: one batch of hypotheses at a time, so the temporary stays ~ 64 x score_points
+    e2 = (np.linalg.norm(points_m[None, :, :] - centres_m[:, None, :], axis=2) - radii_m[:, None]) ** 2
+    return np.minimum(e2, threshold_m**2).sum(axis=1), e2
+
+
+def _samples_needed(inlier_fraction: float, sample_size: int, confidence: float) -> int:
+    """Adaptive stopping: samples needed to draw one all-inlier sample with probability ``confidence``.
+
+    ``k = log(1 - p) / log(1 - w^s)`` for an inlier fraction ``w`` and samples of ``s`` points (Fischler and
+    Bolles); ``1 - w^s`` is floored at 1e-12 so that ``w = 1`` (every scored point an inlier) gives a finite ``k``.
+    """
+    return int(np.ceil(np.log(1 - confidence) / np.log(max(1 - inlier_fraction**sample_size, 1e-12))))
+
+
+def _best_hypothesis(pts: np.ndarray, scoring_m: np.ndarray, radius_m: float | None, threshold_m: float,
+                     rng: np.random.Generator, max_iterations: int, confidence: float,
+                     radius_bounds_m: tuple[float, float]) -> tuple[tuple[np.ndarray, float] | None, int]:
+    """The minimal-sample sphere of least MSAC cost on ``scoring_m``, drawing batches of 64 samples until the
+    adaptive bound (or ``max_iterations``) is reached.
+
+    Returns
+    -------
+    ((np.ndarray, float) or None, int)
+        Centre and radius of the best hypothesis (None if no sample gave one), and the samples drawn.
+    """
+    s = 3 if radius_m is not None else 4
+    t2 = threshold_m**2
+    best_cost, best = np.inf, None
+    drawn, needed, batch = 0, max_iterations, 64
+    while drawn < min(needed, max_iterations):
+        m = min(batch, max_iterations - drawn)
+        centres, radii = _hypotheses(pts, radius_m, m, rng, radius_bounds_m)
+        drawn += m
+        if not len(centres):
+            continue
+        cost, e2 = _msac_costs(scoring_m, centres, radii, threshold_m)
+        i = int(np.argmin(cost))
+        if cost[i] < best_cost:
+            best_cost, best = cost[i], (centres[i], radii[i])
+            w = np.count_nonzero(e2[i] <= t2) / len(scoring_m)
+            if w > 0:
+                needed = _samples_needed(w, s, confidence)
+    return best, drawn
+
+
+def _local_refit(pts: np.ndarray, center_m: np.ndarray, radius_m: float, known_radius_m: float | None,
+                 threshold_m: float, min_inliers: int, radius_bounds_m: tuple[float, float]) -> np.ndarray:
+    """Local optimisation of the best hypothesis: refit on its inliers and re-select them, twice.
+
+    The minimal-sample sphere carries the noise of 3 or 4 points; the least-squares sphere through all its
+    inliers does not, and selects the inliers of the true sphere more faithfully.  A refit that fails or
+    leaves the radius bounds keeps the previous selection.
+
+    Returns
+    -------
+    np.ndarray
+        Inlier mask (N,) of ``pts``.
+    """
+    s = 3 if known_radius_m is not None else 4
+    lo, hi = radius_bounds_m
+    inliers = np.abs(sphere_residuals_m(pts, center_m, radius_m)) <= threshold_m
+    for _ in range(2):
+        if np.count_nonzero(inliers) < max(min_inliers, s + 1):
+            break
+        try:
+            fit = fit_sphere(pts[inliers], radius_m=known_radius_m)
+        except SphereNotFoundError:
+            break
+        if not (lo <= fit.radius_m <= hi):
+            break
+        inliers = np.abs(sphere_residuals_m(pts, fit.center_m, fit.radius_m)) <= threshold_m
+    return inliers
+
+
 def ransac_sphere(points_m, radius_m: float | None = None, threshold_m: float = 0.01, rng=None,
                   max_iterations: int = 2000, confidence: float = 0.999, min_inliers: int = 20,
                   radius_bounds_m: tuple[float, float] | None = None, score_points: int = 20000,
@@ -327,50 +438,14 @@ def ransac_sphere(points_m, radius_m: float | None = None, threshold_m: float = 
     pts = _check_points(points_m, max(s, min_inliers))
     rng = np.random.default_rng(rng)
     n = len(pts)
-    score_idx = rng.choice(n, size=score_points, replace=False) if n > score_points else np.arange(n)
-    sp = pts[score_idx]
-    t2 = threshold_m**2
-    lo, hi = radius_bounds_m if radius_bounds_m is not None else (0.0, np.inf)
-    best_cost, best = np.inf, None
-    drawn, needed, batch = 0, max_iterations, 64
-    while drawn < min(needed, max_iterations):
-        m = min(batch, max_iterations - drawn)
-        # indices drawn with replacement: a repeated point makes a degenerate sample, discarded below
-        samples = pts[rng.integers(0, n, size=(m, s))]
-        drawn += m
-        if s == 4:
-            centres, radii = _spheres_from_4(samples)
-        else:
-            centres = _spheres_from_3(samples, radius_m)
-            radii = np.full(len(centres), float(radius_m))
-        ok = np.isfinite(centres).all(axis=1) & (radii >= lo) & (radii <= hi)
-        if not ok.any():
-            continue
-        centres, radii = centres[ok], radii[ok]
-        # (H, M) residuals: chunked over hypotheses so the temporary stays ~ 64 x score_points
-        e2 = (np.linalg.norm(sp[None, :, :] - centres[:, None, :], axis=2) - radii[:, None]) ** 2
-        cost = np.minimum(e2, t2).sum(axis=1)
-        i = int(np.argmin(cost))
-        if cost[i] < best_cost:
-            best_cost, best = cost[i], (centres[i], radii[i])
-            w = np.count_nonzero(e2[i] <= t2) / len(sp)
-            if w > 0:
-                needed = int(np.ceil(np.log(1 - confidence) / np.log(max(1 - w**s, 1e-12))))
+    scoring = pts[rng.choice(n, size=score_points, replace=False) if n > score_points else np.arange(n)]
+    bounds = radius_bounds_m if radius_bounds_m is not None else (0.0, np.inf)
+    lo, hi = bounds
+    best, drawn = _best_hypothesis(pts, scoring, radius_m, threshold_m, rng, max_iterations, confidence, bounds)
     if best is None:
         raise SphereNotFoundError(f"no sphere hypothesis from {n} points"
                                   + (f" with a radius in [{lo:.3g}, {hi:.3g}] m" if radius_bounds_m else ""))
-    center, radius = best
-    inliers = np.abs(sphere_residuals_m(pts, center, radius)) <= threshold_m
-    for _ in range(2):  # local optimisation: the minimal-sample sphere is noisy, its refit is not
-        if np.count_nonzero(inliers) < max(min_inliers, s + 1):
-            break
-        try:
-            fit = fit_sphere(pts[inliers], radius_m=radius_m)
-        except SphereNotFoundError:
-            break
-        if not (lo <= fit.radius_m <= hi):
-            break
-        inliers = np.abs(sphere_residuals_m(pts, fit.center_m, fit.radius_m)) <= threshold_m
+    inliers = _local_refit(pts, *best, radius_m, threshold_m, min_inliers, bounds)
     n_in = int(np.count_nonzero(inliers))
     if n_in < min_inliers:
         raise SphereNotFoundError(f"no sphere found: best hypothesis has {n_in} inliers within "
