@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 from scipy import integrate, signal
 
-from selfcal.audit.noise import (AllanCurve, allan_curve, avar_gauss_markov, avar_random_walk, avar_white,
-                                 fit_noise_model, noise_audit, oadev_correlation, plot_allan)
+from selfcal.audit.noise import fit_noise_model, noise_audit
+from selfcal.audit.report import plot_allan
+from selfcal.core.allan import (AllanCurve, allan_curve, avar_gauss_markov, avar_random_walk, avar_white,
+                                oadev_correlation)
 from selfcal.core.inertial import ImuNoise
 from selfcal.sim.imu import ImuScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory

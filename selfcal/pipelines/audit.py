@@ -49,7 +49,7 @@ class AuditRun:
             import tempfile
             from pathlib import Path
 
-            from selfcal.audit.noise import plot_allan
+            from selfcal.audit.report import plot_allan
             folder = Path(figure_dir or tempfile.mkdtemp(prefix="selfcal-allan-"))
             extras["noise"] = [{
                 "title": f"Allan deviation of {n.sensor}/{n.quantity}: measured against the white-noise model "
