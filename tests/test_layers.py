@@ -165,3 +165,18 @@ def test_the_checkers_find_each_kind_of_violation():
     lists = ast.parse('SYSTEMS = ("imu", "tracker")\nif system == "ship":\n    pass\nx = {"imu": 1, "scan": 2}\n')
     assert len(system_name_lists(lists)) == 3
     assert system_name_lists(ast.parse('sensor = "imu"\nkind = ("imu0", "imu1")\n')) == []
+
+
+def test_the_grid_in_docs_architecture_matches_the_package():
+    """docs/architecture.md's grid is the newcomer's map: one row per registry system, marks as on disk."""
+    text = (PACKAGE.parent / "docs" / "architecture.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| system |"))
+    layers = [cell.strip() for cell in header.strip("|").split("|")][1:]
+    rows = {line.split("|")[1].strip().split()[0].strip("`"): [c.strip() for c in line.strip("|").split("|")[1:]]
+            for line in text.splitlines() if line.startswith("| `")}
+    assert set(rows) >= {s.name for s in registry.SYSTEMS}
+    for system in registry.SYSTEMS:
+        for layer, mark in zip(layers, rows[system.name]):
+            on_disk = ("✓" if (PACKAGE / layer / f"{system.module}.py").is_file() else
+                       "✓/" if (PACKAGE / layer / system.module).is_dir() else "")
+            assert mark == on_disk, (system.name, layer, mark, on_disk)
