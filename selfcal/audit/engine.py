@@ -15,6 +15,20 @@ catalog of candidate effects.  The engine is the same for every system:
 4. When another candidate explains the data about as well as the accepted one (BIC within 6, "strong
    evidence" on Kass & Raftery's scale) and loses its own evidence once the accepted one is in, the finding
    records the ambiguity instead of hiding it.
+
+After the catalog, the **generic term library** (:mod:`selfcal.audit.terms`) is searched with the same
+machinery, for systems whose adapter offers drivers (``term_coordinates``): a term is a correction of a plain
+form (polynomial, step, harmonic, product) in one coordinate, fitted inside the graph; its finding has
+``effect: "unlisted"`` with the ``driver`` and ``form`` that describe it.  Multiple testing is corrected over
+the effective number of library candidates (Li & Ji 2005), since nested and neighbouring terms are correlated.
+
+No false attribution: a catalog effect is accepted only if its estimate is physically plausible (the adapter's
+``plausible``) and no generic term on the same residual explains it better held-out while encompassing it
+(significant on top of the catalog effect, with the catalog effect no longer significant on top of the term).
+Every candidate that passed the significance test but was not accepted is kept in ``rejected`` with the reason
+(``bic``, ``heldout``, ``implausible``, ``outdone``), and the final model's residuals get a verdict per family in
+``remaining``: whiteness (Ljung-Box) and the strongest term left, so "no finding" is never said where the data
+held evidence.
 """
 from __future__ import annotations
 
@@ -26,13 +40,24 @@ import gtsam
 import numpy as np
 from scipy import stats
 
-from selfcal.core.solve import dense_jacobian
+from selfcal.audit import terms as library
+from selfcal.audit.terms import Coordinate, Term
+from selfcal.core.solve import DegenerateDataError, dense_jacobian
 
 log = logging.getLogger(__name__)
 
 FAMILY_ALPHA = 1e-3  # family-wise false-finding probability per search step: a false finding sends a user
 # recalibrating for nothing, so it is kept rare (about 2 % of 20 null recordings may show one)
 AMBIGUITY_BIC = 6.0
+# An effect no catalog predicts needs stronger evidence than one physics expects: the library searches many
+# shapes after the fact, and what the models leave at the noise level (a static interval's last transient, a
+# pose's micro-motion) makes its many tests fail more often than the F distribution says.  Measured on 40 null
+# multi-position recordings: about 10x too many per-test p-values below 1e-3.  So the library's family-wise
+# level is 1e-5 (about 4.4 sigma), and its false-finding rate is measured in benchmarks/audit_recall.py.
+LIBRARY_ALPHA = 1e-5
+LIBRARY_ATTEMPTS = 3  # significant library terms refitted per step, strongest evidence first
+COLLINEAR = 1e-2  # a library column within 0.6 deg of the model's columns adds nothing the model lacks (measured:
+# duplicates of a catalog parameter sit at 1e-4..1e-3 after rounding and linearisation, real new shapes above 0.1)
 
 
 @dataclass
@@ -46,6 +71,7 @@ class ResidualFamily:
     physical: np.ndarray  # (n, k)
     coordinates: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (n,)
     channels: tuple[str, ...] = ()  # which coordinates are auxiliary channels of the recording
+    angles: tuple[str, ...] = ()  # which coordinates are angles (rad): harmonics of them are offered
 
     @property
     def label(self) -> str:
@@ -65,10 +91,26 @@ class Candidate:
     meaning: str
     target: str  # quantity of the residual family it explains (its gain is measured there)
     coordinate: str  # the coordinate its residual signature depends on (for plots)
+    term: Term | None = None  # a generic term of the library (effect "unlisted")
 
     @property
     def key(self) -> str:
+        if self.term is not None:
+            return f"unlisted:{self.term.label}@{self.sensor}:{self.target}"
         return f"{self.effect}@{self.sensor}:{self.target}"
+
+    @property
+    def label(self) -> str:
+        """The residual family it explains, ``sensor/quantity``."""
+        return f"{self.sensor}/{self.target}"
+
+
+UNLISTED = "unlisted"
+
+
+def generic_candidate(term: Term, sensor: str, target: str, unit: str = "") -> Candidate:
+    """A library term as a candidate of the search (``effect: "unlisted"``)."""
+    return Candidate(UNLISTED, sensor, term.meaning(f"{sensor}/{target}", unit), target, term.driver, term)
 
 
 @dataclass
@@ -130,6 +172,13 @@ class AuditSystem(Protocol):
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """The candidate's estimate and 1-sigma in the contract's keys and units."""
 
+    # Optional hooks (looked up with getattr):
+    #   residual_correlation(fit) -> float: variance inflation 1 + 2 sum rho_k of residuals correlated in time
+    #   term_coordinates(fit) -> {target quantity: [Coordinate]}: drivers its graph takes generic terms in
+    #       (the candidates' ``term`` then reaches fit / extend / heldout / estimate)
+    #   plausible(candidate, estimate) -> str | None: why an estimate is physically implausible
+    #   catalog_term(candidate) -> (driver, form) | None: the library term a catalog effect is identical to
+
 
 def score_test(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                new_columns: list[tuple[int, np.ndarray]]) -> tuple[float, int, int]:
@@ -152,6 +201,41 @@ def score_test(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return float(max(f_stat, 0.0)), n_new, int(dof_den)
 
 
+def score_tests(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                groups: list[list[tuple[int, np.ndarray]]]) -> list[tuple[float, int, int]]:
+    """:func:`score_test` of many candidates at once, from one graph holding all of them at their nominal values.
+
+    Each group lists one candidate's new columns; the other candidates' columns are left out of its test.  One
+    linearisation and one orthonormal basis ``Q`` of the base columns serve every candidate: its columns are
+    projected off the base (``T' = T - Q Q^T T``), and the RSS drop is ``r^T T' (T'^T T')^+ T'^T r`` with ``r``
+    the base residual.  A direction of ``T'`` shorter than ``COLLINEAR`` times the candidate's own column norm
+    is a direction the model already has (a library term that duplicates a catalog parameter): it adds no
+    degree of freedom and no evidence, whatever rounding leaves in it.
+    """
+    A, b, offsets = dense_jacobian(graph, values)
+    columns = [np.concatenate([offsets[k] + np.asarray(idx, dtype=int) for k, idx in group]) for group in groups]
+    candidate_columns = np.unique(np.concatenate(columns)) if columns else np.array([], dtype=int)
+    base = np.setdiff1d(np.arange(A.shape[1]), candidate_columns)
+    U, sv, _ = np.linalg.svd(A[:, base], full_matrices=False)
+    rank_base = int(np.sum(sv > 1e-10 * max(sv.max(initial=0.0), 1e-300)))
+    Q = U[:, :rank_base]  # orthonormal basis of the base columns' span
+    r = b - Q @ (Q.T @ b)
+    rss_old = float(r @ r)
+    out = []
+    for col in columns:
+        T = A[:, col]
+        own = max(float(np.linalg.norm(T, 2)), 1e-300)
+        T = T - Q @ (Q.T @ T)
+        U, sv, _ = np.linalg.svd(T, full_matrices=False)
+        gain = int(np.sum(sv > COLLINEAR * own))
+        drop = float(np.sum((U[:, :gain].T @ r) ** 2))
+        n_new = max(gain, 1)
+        dof_den = max(A.shape[0] - rank_base - gain, 1)
+        f_stat = (drop / n_new) / max((rss_old - drop) / dof_den, 1e-300)
+        out.append((float(max(f_stat, 0.0)), n_new, int(dof_den)))
+    return out
+
+
 def _lstsq_rss(A: np.ndarray, b: np.ndarray) -> float:
     if A.shape[1] == 0:
         return float(b @ b)
@@ -169,6 +253,23 @@ class Trial:
 
 
 @dataclass
+class Rejection:
+    """Why a significant candidate was not accepted: ``bic``, ``heldout``, ``implausible`` or ``outdone``."""
+
+    reason: str
+    measured: dict  # delta BIC, held-out RSS before/after, and the reason's own detail
+
+
+@dataclass
+class Heldout:
+    """Cross-validated residuals of one model: whitened RSS over all families, per family RSS and RMS."""
+
+    rss: float
+    rss_by_label: dict[str, float]
+    rms_by_label: dict[str, float]
+
+
+@dataclass
 class AuditResult:
     system: str
     base_model: str
@@ -178,99 +279,372 @@ class AuditResult:
     final_fit: Fit
     history: list[dict]  # per search step: the trials (evidence table) and what was accepted
     fits: list[Fit]  # base, then after each accepted finding
+    rejected: list[dict] = field(default_factory=list)  # passed the significance test, not accepted (reason)
+    remaining: dict = field(default_factory=dict)  # family label -> verdict on the final model's residuals
+    notes: list[str] = field(default_factory=list)  # coordinates skipped, phases not offered
+
+    @property
+    def significant_evidence(self) -> bool:
+        """Whether anything passed the significance test (accepted or not)."""
+        return bool(self.findings or self.rejected)
 
     def to_json(self) -> dict:
         """The audit contract of ARCHITECTURE.md (extra keys are additions, never changes)."""
         final = [self.base_model] + [c.effect for c in self.final_effects if c not in self.base_fit.effects]
-        return {"system": self.system, "base_model": self.base_model, "findings": self.findings,
-                "final_model": final,
-                "residual_rms": {f.label: f.rms for f in self.final_fit.families}}
+        out = {"system": self.system, "base_model": self.base_model, "findings": self.findings,
+               "final_model": final,
+               "residual_rms": {f.label: f.rms for f in self.final_fit.families},
+               "rejected": self.rejected, "remaining": self.remaining}
+        if self.notes:
+            out["notes"] = self.notes
+        return out
 
 
-def _heldout(system: AuditSystem, effects) -> tuple[float, dict[str, float]]:
-    """Held-out whitened RSS over all families and physical RMS per family label, summed over folds."""
-    rss, sq, count = 0.0, {}, {}
+def _heldout(system: AuditSystem, effects) -> Heldout:
+    """Held-out whitened RSS over all families, and per family label, summed over folds."""
+    rss, rss_by, sq, count = 0.0, {}, {}, {}
     for fold in range(system.folds):
         fit = system.fit(effects, fold)
         for fam in system.heldout(fit, fold):
-            rss += float(np.sum(fam.whitened**2))
+            w = float(np.sum(fam.whitened**2))
+            rss += w
+            rss_by[fam.label] = rss_by.get(fam.label, 0.0) + w
             sq[fam.label] = sq.get(fam.label, 0.0) + float(np.sum(fam.physical**2))
             count[fam.label] = count.get(fam.label, 0) + fam.physical.size
-    return rss, {label: np.sqrt(sq[label] / count[label]) for label in sq}
+    return Heldout(rss, rss_by, {label: np.sqrt(sq[label] / count[label]) for label in sq})
 
 
 def run_audit(system: AuditSystem, max_findings: int = 8, alpha: float = FAMILY_ALPHA, progress=None) -> AuditResult:
-    """Search the catalog for effects the data show, one accepted extension at a time."""
-    effects = tuple(system.base_effects)
-    fit = system.fit(effects)
-    base_fit = fit
-    fits = [fit]
-    heldout_rss, heldout_rms = _heldout(system, effects)
-    findings, history = [], []
-    for step in range(max_findings):
-        open_candidates = [c for c in system.candidates() if c not in effects]
-        if not open_candidates:
+    """Search the catalog, then the generic term library, one accepted extension at a time."""
+    search = _Search(system, alpha, progress)
+    search.run(max_findings)
+    return search.result()
+
+
+class _Search:
+    """The search's state (current model, its held-out residuals, findings, rejections) and its steps."""
+
+    def __init__(self, system: AuditSystem, alpha: float, progress):
+        self.system, self.alpha, self.progress = system, alpha, progress
+        self.library_alpha = min(alpha, LIBRARY_ALPHA)
+        self.effects = tuple(system.base_effects)
+        self.fit = self.base_fit = system.fit(self.effects)
+        self.fits = [self.fit]
+        self.held = _heldout(system, self.effects)
+        self.findings: list[dict] = []
+        self.history: list[dict] = []
+        self.rejected: dict[str, dict] = {}
+        self.notes: list[str] = []
+        self.offers_terms = hasattr(system, "term_coordinates")
+
+    # --- the search --------------------------------------------------------------------------------------------
+
+    def run(self, max_findings: int) -> None:
+        """The catalog until nothing more is accepted, then the library.  A library term that outdoes a catalog
+        finding on its residual has that finding rejected, and the search starts again without it."""
+        banned: set[Candidate] = set()
+        while True:
+            while len(self.findings) < max_findings:
+                catalog = [c for c in self.system.candidates() if c not in self.effects and c not in banned]
+                if not catalog or not self.step(catalog, len(catalog), "catalog"):
+                    break
+            if not self.offers_terms:
+                self.notes.append(f"{self.system.name}: no generic term library in this system's graph yet; the "
+                                  "remaining structure is reported, not modelled")
+                break
+            outdone = None
+            while len(self.findings) < max_findings and outdone is None:
+                generic = self.generic_candidates()
+                if not generic:
+                    break
+                outdone = self.step(generic, self.library_tests(generic), "library")
+                if outdone is False:
+                    break
+            if not isinstance(outdone, Candidate):
+                break
+            banned.add(outdone)
+            self.restart()
+        # estimates and sigmas come from the final model: an effect accepted later changes the earlier ones
+        # (gains stay as measured at the step each effect was accepted)
+        for finding, cand in zip(self.findings, [c for c in self.effects if c not in self.base_fit.effects]):
+            estimate, std = self.system.estimate(self.fit, cand)
+            finding["estimate"], finding["std"] = estimate, std
+
+    def restart(self) -> None:
+        """Back to the base model (rejections and notes are kept)."""
+        self.effects = tuple(self.system.base_effects)
+        self.fit = self.base_fit
+        self.fits = [self.fit]
+        self.held = _heldout(self.system, self.effects)
+        self.findings, self.history = [], []
+
+    def library_tests(self, generic: list[Candidate]) -> float:
+        """The effective number of library tests: correlated terms count once (Li & Ji), a searched step
+        location counts for the locations tried."""
+        m_eff = max(library.effective_number(self._first_columns(generic)), 1.0)
+        steps = sum(1 for c in generic if c.term.form == "step")
+        return m_eff + steps * (library.STEP_LOCATIONS - 1) / library.STEP_LOCATIONS
+
+    def step(self, candidates: list[Candidate], n_tests: float, phase: str):
+        """Score every candidate, refit the significant ones in order of evidence, accept the first that passes.
+
+        Returns True when one was accepted, False when none was, and in the library phase the catalog effect a
+        term outdoes (the caller restarts the search without it).  A library step tries at most
+        ``LIBRARY_ATTEMPTS`` significant terms: each costs a refit and the cross-validation.
+        """
+        trials = sorted(self.score_many(candidates, self.fit), key=lambda t: t.p_value)
+        threshold = (self.alpha if phase == "catalog" else self.library_alpha) / n_tests
+        if self.progress:
+            self.progress(f"step {len(self.history) + 1} ({phase}): {len(trials)} candidates, best "
+                          f"{trials[0].candidate.key} p={trials[0].p_value:.3g}")
+        significant = [t for t in trials if t.p_value < threshold]
+        if phase == "library":
+            significant = significant[:LIBRARY_ATTEMPTS]
+        accepted, outdone = None, None
+        for trial in significant:
+            if phase == "library" and self.nested_catalog(trial.candidate):
+                # a polynomial of a driver a catalog effect is linear in: tried in its place, not on top of it
+                outdone = self.outdone_catalog_effect(trial, self.nested_catalog(trial.candidate))
+                if outdone is not None:
+                    break
+                self.reject(trial, Rejection("heldout", {"in_place_of": [c.effect for c in
+                                                                        self.nested_catalog(trial.candidate)]}))
+                continue
+            outcome = self.attempt(trial)
+            if isinstance(outcome, Rejection):
+                self.reject(trial, outcome)
+                continue
+            # a term that pays on top of the model may still explain a catalog finding better than the finding
+            # does (a quadratic where a linear catalog effect took the slope): then the finding goes instead
+            outdone = self.outdone_catalog_effect(trial) if phase == "library" else None
+            if outdone is None:
+                accepted = (trial, *outcome)
             break
+        self.history.append({"step": len(self.history) + 1, "phase": phase, "threshold": threshold,
+                             "trials": [{"candidate": t.candidate.key, "F": t.f_stat, "p_value": t.p_value}
+                                        for t in trials],
+                             "accepted": accepted[0].candidate.key if accepted else None})
+        if outdone is not None:
+            return outdone
+        if accepted is None:
+            return False
+        self.accept(*accepted, trials, threshold)
+        return True
+
+    def score(self, candidate: Candidate, fit: Fit) -> Trial:
+        """Score test of one candidate against ``fit``, corrected for residuals correlated in time (a library
+        term's with the collinearity rule of :func:`score_tests`)."""
+        graph, values, columns = self.system.extend(fit, candidate)
+        if candidate.term is None:
+            f_stat, dof, dof_den = score_test(graph, values, columns)
+        else:
+            f_stat, dof, dof_den = score_tests(graph, values, [columns])[0]
+        inflation = self.inflation(fit)
+        f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
+        return Trial(candidate, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof)
+
+    def score_many(self, candidates: list[Candidate], fit: Fit) -> list[Trial]:
+        """Score tests of many candidates: from one graph holding them all where the system builds one
+        (``extend_all``: library terms), else one :func:`score_test` each."""
+        extend_all = getattr(self.system, "extend_all", None)
+        if extend_all is None or any(c.term is None for c in candidates):
+            return [self.score(c, fit) for c in candidates]
+        graph, values, groups = extend_all(fit, candidates)
+        inflation = self.inflation(fit)
         trials = []
-        # residuals correlated in time (waves, vibration) hold fewer independent samples than rows: a system
-        # that knows it gives the variance inflation 1 + 2 sum rho_k, and the F test uses the effective sizes
-        inflation = system.residual_correlation(fit) if hasattr(system, "residual_correlation") else 1.0
-        for cand in open_candidates:
-            f_stat, dof, dof_den = score_test(*system.extend(fit, cand))
+        for cand, (f_stat, dof, dof_den) in zip(candidates, score_tests(graph, values, groups)):
             f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
             trials.append(Trial(cand, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof))
-        trials.sort(key=lambda t: t.p_value)
-        threshold = alpha / len(open_candidates)
-        if progress:
-            progress(f"step {step + 1}: {len(trials)} candidates, best {trials[0].candidate.key} p={trials[0].p_value:.3g}")
-        accepted = None
-        tried = []
-        for trial in (t for t in trials if t.p_value < threshold):
-            new_effects = effects + (trial.candidate,)
-            new_fit = system.fit(new_effects)
-            new_heldout_rss, new_heldout_rms = _heldout(system, new_effects)
-            delta_bic = new_fit.bic() - fit.bic()
-            tried.append((trial, new_fit, delta_bic))
-            log.info("%s: F=%.3g p=%.3g dBIC=%.1f heldout %.4g -> %.4g", trial.candidate.key, trial.f_stat,
-                     trial.p_value, delta_bic, heldout_rss, new_heldout_rss)
-            label = f"{trial.candidate.sensor}/{trial.candidate.target}"
-            target_held = new_heldout_rms.get(label, 0.0) <= heldout_rms.get(label, np.inf)
-            if delta_bic < 0 and new_heldout_rss < heldout_rss and target_held:
-                accepted = (trial, new_fit, delta_bic, new_heldout_rss, new_heldout_rms)
-                break
-        history.append({"step": step + 1, "threshold": threshold,
-                        "trials": [{"candidate": t.candidate.key, "F": t.f_stat, "p_value": t.p_value} for t in trials],
-                        "accepted": accepted[0].candidate.key if accepted else None})
-        if accepted is None:
-            break
-        trial, new_fit, delta_bic, new_heldout_rss, new_heldout_rms = accepted
+        return trials
+
+    def inflation(self, fit: Fit) -> float:
+        # residuals correlated in time (waves, vibration) hold fewer independent samples than rows: a system
+        # that knows it gives the variance inflation 1 + 2 sum rho_k, and the F test uses the effective sizes
+        hook = getattr(self.system, "residual_correlation", None)
+        return hook(fit) if hook else 1.0
+
+    def attempt(self, trial: Trial):
+        """(fit, held-out, delta BIC) of the model with the candidate, or the :class:`Rejection` saying why not."""
         cand = trial.candidate
-        estimate, std = system.estimate(new_fit, cand)
-        target_before = fit.family(cand.target, cand.sensor)
-        target_after = new_fit.family(cand.target, cand.sensor)
-        label = f"{cand.sensor}/{cand.target}"
+        new_effects = self.effects + (cand,)
+        new_fit = self.system.fit(new_effects)
+        new_held = _heldout(self.system, new_effects)
+        delta_bic = new_fit.bic() - self.fit.bic()
+        log.info("%s: F=%.3g p=%.3g dBIC=%.1f heldout %.4g -> %.4g", cand.key, trial.f_stat, trial.p_value,
+                 delta_bic, self.held.rss, new_held.rss)
+        measured = {"delta_bic": delta_bic, "heldout_rss_before": self.held.rss, "heldout_rss_after": new_held.rss}
+        if delta_bic >= 0:
+            return Rejection("bic", measured)
+        target_held = new_held.rms_by_label.get(cand.label, 0.0) <= self.held.rms_by_label.get(cand.label, np.inf)
+        # a library term must pay for its parameters on held-out data too: fitted to noise, each of its q
+        # parameters raises the expected held-out whitened RSS by about 1 (the predictive analogue of AIC), so a
+        # real term lowers it by more than q; the catalog keeps the plain "lower" rule (its effects are physics
+        # expected a priori, the library's are a search over many shapes)
+        margin = float(trial.dof) if cand.term is not None else 0.0
+        if not (new_held.rss < self.held.rss - margin and target_held):
+            return Rejection("heldout", measured)
+        try:
+            estimate = self.system.estimate(new_fit, cand)[0]
+        except DegenerateDataError as err:
+            return Rejection("implausible", {**measured, "why": f"not determined by the data: {err}"})
+        plausible = getattr(self.system, "plausible", None)
+        why = plausible(cand, estimate) if plausible is not None else None
+        if why:
+            return Rejection("implausible", {**measured, "why": why})
+        return new_fit, new_held, delta_bic
+
+    def nested_catalog(self, term: Candidate) -> list[Candidate]:
+        """Catalog effects in the model that a library polynomial contains (its linear part in the same driver)."""
+        same_as = getattr(self.system, "catalog_term", None)
+        if term.term is None or same_as is None or term.term.form not in ("poly2", "poly3"):
+            return []
+        return [c for c in self.effects if c.term is None and c.sensor == term.sensor and c.target == term.target
+                and same_as(c) == (term.term.driver, "poly1")]
+
+    def outdone_catalog_effect(self, trial: Trial, among: list[Candidate] | None = None) -> Candidate | None:
+        """The catalog finding a significant library term outdoes on the same residual, rejected as such.
+
+        Swap test in the final model, so that the other catalog effects keep what is theirs: with the term in
+        place of the effect, the target's held-out residual must be smaller than with the effect, and the effect
+        must lose its significance on top of the term (the term encompasses it: Davidson & MacKinnon's
+        non-nested comparison).  The term is already significant on top of the whole model (the trial).
+        """
+        term = trial.candidate
+        rivals = among if among is not None else [c for c in self.effects if c.term is None and c.sensor == term.sensor
+                                                  and c.target == term.target]
+        for cand in [c for c in rivals if c not in self.base_fit.effects]:
+            swapped = tuple(c for c in self.effects if c != cand) + (term,)
+            held = _heldout(self.system, swapped)
+            if held.rss_by_label.get(cand.label, np.inf) >= self.held.rss_by_label.get(cand.label, -np.inf):
+                continue
+            finding = next(f for f in self.findings if f["effect"] == cand.effect and f["target"] == cand.label)
+            on_top = self.score(cand, self.system.fit(swapped))
+            if on_top.p_value < self.alpha / max(len(self.system.candidates()), 1):
+                continue
+            self.reject(Trial(cand, finding["evidence"]["statistic"], finding["evidence"]["p_value"], 0),
+                        Rejection("outdone", {
+                            "heldout_target_rss_catalog": self.held.rss_by_label.get(cand.label),
+                            "heldout_target_rss_term": held.rss_by_label.get(cand.label),
+                            "p_value_on_top_of_term": on_top.p_value,
+                            "outdone_by": {"driver": term.term.driver, "form": term.term.form,
+                                           "meaning": term.meaning}}))
+            return cand
+        return None
+
+    def reject(self, trial: Trial, rejection: Rejection) -> None:
+        cand = trial.candidate
+        entry = {"effect": cand.effect, "target": cand.label, "reason": rejection.reason,
+                 "evidence": {"statistic": trial.f_stat, "p_value": trial.p_value}, **rejection.measured}
+        if cand.term is not None:
+            entry.update(driver=cand.term.driver, form=cand.term.form, meaning=cand.meaning)
+        self.rejected[cand.key] = entry
+
+    def accept(self, trial: Trial, new_fit: Fit, new_held: Heldout, delta_bic: float, trials, threshold) -> None:
+        cand = trial.candidate
+        estimate, std = self.system.estimate(new_fit, cand)
+        before, after = self.fit.family(cand.target, cand.sensor), new_fit.family(cand.target, cand.sensor)
         finding = {
             "effect": cand.effect, "sensor": cand.sensor, "estimate": estimate, "std": std,
-            "evidence": {"diagnostic": f"score test: {label} residual vs {cand.coordinate}",
+            "evidence": {"diagnostic": f"score test: {cand.label} residual vs {cand.coordinate}",
                          "statistic": trial.f_stat, "p_value": trial.p_value},
-            "gain": {"rms_before": target_before.rms if target_before else None,
-                     "rms_after": target_after.rms if target_after else None,
-                     "delta_bic": delta_bic,
-                     "heldout_rms_before": heldout_rms.get(label), "heldout_rms_after": new_heldout_rms.get(label)},
-            "meaning": cand.meaning, "target": label,
+            "gain": {"unit": before.unit if before else None,
+                     "rms_before": before.rms if before else None, "rms_after": after.rms if after else None,
+                     "delta_bic": delta_bic, "heldout_rms_before": self.held.rms_by_label.get(cand.label),
+                     "heldout_rms_after": new_held.rms_by_label.get(cand.label)},
+            "meaning": cand.meaning, "target": cand.label,
         }
-        rivals = _ambiguous_rivals(system, new_fit, trials, cand, new_fit.bic(), fit, threshold)
+        if cand.term is not None:
+            finding.update(driver=cand.term.driver, form=cand.term.form)
+            if cand.term.second:
+                finding["second_driver"] = cand.term.second
+        same_as = getattr(self.system, "catalog_term", lambda c: None)(cand)
+        if same_as:
+            finding["same_as"] = {"effect": UNLISTED, "driver": same_as[0], "form": same_as[1],
+                                  "note": "the catalog name is used for this library term"}
+        rivals = _ambiguous_rivals(self.system, new_fit, trials, cand, new_fit.bic(), self.fit, threshold)
         if rivals:
             finding["ambiguous_with"] = rivals
-        findings.append(finding)
-        effects = effects + (cand,)
-        fit, heldout_rss, heldout_rms = new_fit, new_heldout_rss, new_heldout_rms
-        fits.append(fit)
-    # estimates and sigmas come from the final model: an effect accepted later changes the earlier ones
-    # (gains stay as measured at the step each effect was accepted)
-    for finding, cand in zip(findings, [c for c in effects if c not in base_fit.effects]):
-        finding["estimate"], finding["std"] = system.estimate(fit, cand)
-    return AuditResult(system.name, system.base_model, findings, effects, base_fit, fit, history, fits)
+        self.findings.append(finding)
+        self.rejected.pop(cand.key, None)
+        self.effects = self.effects + (cand,)
+        self.fit, self.held = new_fit, new_held
+        self.fits.append(new_fit)
+
+    # --- the library ---------------------------------------------------------------------------------------
+
+    def generic_candidates(self, fit: Fit | None = None) -> list[Candidate]:
+        """Library terms for every target the system takes terms on, minus those a catalog effect already is."""
+        fit = fit or self.fit
+        drivers = self.system.term_coordinates(fit)
+        covered = set()
+        for c in list(self.system.candidates()) + list(self.effects):
+            same = getattr(self.system, "catalog_term", lambda c: None)(c) if c.term is None else None
+            if same:
+                covered.add((c.sensor, c.target, *same))
+        out = []
+        for (sensor, target), coordinates in drivers.items():
+            usable = []
+            for c in coordinates:
+                why = c.usable
+                if why:
+                    note = f"{sensor}/{target}: {why}: skipped"
+                    if note not in self.notes:
+                        self.notes.append(note)
+                else:
+                    usable.append(c)
+            fam = fit.family(target, sensor)
+            time = next((c for c in usable if c.kind == "time"), None)
+            residual = fam.whitened if fam is not None and time is not None and len(fam.whitened) == len(
+                time.values) else None
+            for term in library.terms_for(usable, residual, time.values if time is not None else None):
+                if (sensor, target, term.driver, term.form) in covered:
+                    continue
+                unit = next((c.unit for c in usable if c.name == term.driver), "")
+                cand = generic_candidate(term, sensor, target, unit)
+                if cand not in self.effects:
+                    out.append(cand)
+        return out
+
+    def _first_columns(self, candidates: list[Candidate]) -> list[np.ndarray]:
+        """Each candidate's first basis column at its target's driver values (for the effective number)."""
+        drivers = self.system.term_coordinates(self.fit)
+        values = {}
+        for (sensor, target), coordinates in drivers.items():
+            values[(sensor, target)] = {c.name: np.asarray(c.values, dtype=float) for c in coordinates}
+        n = max((len(next(iter(v.values()))) for v in values.values() if v), default=0)
+        columns = []
+        for c in candidates:
+            coords = values[(c.sensor, c.target)]
+            col = c.term.columns(coords)[:, 0]
+            # targets with other row sets are padded apart: they never correlate with each other
+            columns.append(np.pad(col, (0, n - col.size)) if col.size < n else col)
+        length = max(len(col) for col in columns)
+        return [np.pad(col, (0, length - col.size)) for col in columns]
+
+    def strongest_terms(self) -> dict[str, dict]:
+        """Per target family: the library term with the most evidence on top of the final model (the graph's
+        score test), its p-value adjusted over the effective number of library tests."""
+        generic = self.generic_candidates()
+        if not generic:
+            return {}
+        m_eff = self.library_tests(generic)
+        out = {}
+        for trial in sorted(self.score_many(generic, self.fit), key=lambda t: t.p_value):
+            label = trial.candidate.label
+            if label not in out:
+                term = trial.candidate.term
+                out[label] = {"driver": term.driver, "form": term.form, "p_value": min(1.0, trial.p_value * m_eff),
+                              "meaning": trial.candidate.meaning, "test": "score test on the graph",
+                              **({"second_driver": term.second} if term.second else {})}
+        return out
+
+    # --- the result ----------------------------------------------------------------------------------------
+
+    def result(self) -> AuditResult:
+        strongest = self.strongest_terms() if self.offers_terms else {}
+        remaining = remaining_structure(self.fit, self.alpha, self.inflation(self.fit), strongest)
+        return AuditResult(self.system.name, self.system.base_model, self.findings, self.effects, self.base_fit,
+                           self.fit, self.history, self.fits, list(self.rejected.values()), remaining, self.notes)
 
 
 def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, previous_fit, threshold) -> list[dict]:
@@ -284,6 +658,75 @@ def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, prev
             continue  # still significant on top of the accepted effect: a separate effect, not a rival
         alternative = system.fit(previous_fit.effects + (trial.candidate,))
         if alternative.bic() - accepted_bic < AMBIGUITY_BIC:
-            rivals.append({"effect": trial.candidate.effect, "target": f"{trial.candidate.sensor}/{trial.candidate.target}",
+            rivals.append({"effect": trial.candidate.effect, "target": trial.candidate.label,
                            "delta_bic_vs_accepted": alternative.bic() - accepted_bic})
     return rivals
+
+
+# --- what remains ------------------------------------------------------------------------------------------------
+
+def driver_name(coordinate: str) -> str:
+    """The plain name of a coordinate as a driver (``time_s`` -> ``time``)."""
+    return "time" if coordinate in ("time_s", "t_s") else coordinate
+
+
+def family_coordinates(family: ResidualFamily) -> list[Coordinate]:
+    """The coordinates a family carries, as library drivers (time, channels, angles, state quantities)."""
+    n = family.physical.shape[0]
+    out = []
+    for name, values in family.coordinates.items():
+        values = np.asarray(values, dtype=float)
+        if values.shape != (n,):
+            continue
+        kind = ("time" if driver_name(name) == "time" else "channel" if name in family.channels
+                else "angle" if name in family.angles else "state")
+        out.append(Coordinate(driver_name(name), values, kind=kind))
+    return out
+
+
+def remaining_structure(fit: Fit, alpha: float = FAMILY_ALPHA, inflation: float = 1.0,
+                        strongest: dict | None = None) -> dict:
+    """Per residual family of the final model: is what is left white noise, or does structure remain?
+
+    Whiteness: Ljung-Box on each time-ordered whitened component (the smallest p, Bonferroni over components).
+    Strongest remaining term: given in ``strongest`` (label -> the graph's score test of the library, where the
+    system fits terms), else every library term of the family's coordinates regressed on each component's
+    whitened residual (:func:`selfcal.audit.terms.residual_score`, a lower bound of the graph's score test),
+    F deflated by the residuals' correlation inflation, p Bonferroni-adjusted over the effective number of
+    terms and the components.  ``structure_remains`` when either is below ``alpha``; for residuals the
+    system knows to be correlated (inflation > 1) the whiteness test is reported but does not decide.
+    """
+    strongest = strongest or {}
+    from selfcal.audit.diagnostics import ljung_box
+    out = {}
+    for fam in fit.families:
+        w = np.asarray(fam.whitened, dtype=float)
+        w = w[:, None] if w.ndim == 1 else w
+        coordinates = family_coordinates(fam)
+        time = next((c for c in coordinates if c.kind == "time"), None)
+        order = np.argsort(time.values, kind="stable") if time is not None else np.arange(len(w))
+        k = w.shape[1]
+        lb = [ljung_box(w[order, j])[2] for j in range(k)]
+        lb = [p for p in lb if np.isfinite(p)]
+        whiteness_p = float(min(1.0, min(lb) * len(lb))) if lb else None
+        usable = [c for c in coordinates if c.usable is None]
+        best = strongest.get(fam.label)
+        candidates = [] if best else library.terms_for(usable, w[order] if time is not None else None,
+                                                       time.values[order] if time is not None else None)
+        if candidates:
+            columns = {t: t.columns({c.name: c.values for c in usable}) for t in candidates}
+            m_eff = max(library.effective_number([col[:, 0] for col in columns.values()]), 1.0) * k
+            for j in range(k):
+                for term, col in columns.items():
+                    f_stat, dof, dof_den = library.residual_score(w[:, j], col)
+                    f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
+                    p = min(1.0, library.f_pvalue(f_stat, dof, dof_den) * m_eff)
+                    if best is None or p < best["p_value"]:
+                        best = {"driver": term.driver, "form": term.form, "component": j, "p_value": p,
+                                "test": "regression on the residual",
+                                **({"second_driver": term.second} if term.second else {})}
+        structure = (best is not None and best["p_value"] < alpha) or (
+            inflation <= 1.0 and whiteness_p is not None and whiteness_p < alpha)
+        out[fam.label] = {"verdict": "structure_remains" if structure else "noise_floor",
+                          "whiteness_p": whiteness_p, "strongest": best, "n": int(len(w))}
+    return out

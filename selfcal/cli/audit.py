@@ -29,14 +29,7 @@ def audit(args) -> None:
     sensors = [name for name in (args.imu, args.imu1) if name] or None
     run = audit_recording(rec, args.system, args.base, sensors, progress=log.info)
     contract = run.to_json()
-    for finding in contract["findings"]:
-        print(f"found {finding['effect']} ({finding['target']}): RMS {finding['gain']['rms_before']:.4g} -> "
-              f"{finding['gain']['rms_after']:.4g}, held-out {finding['gain']['heldout_rms_before']:.4g} -> "
-              f"{finding['gain']['heldout_rms_after']:.4g}"
-              + (" [ambiguous with " + ", ".join(r["effect"] for r in finding["ambiguous_with"]) + "]"
-                 if finding.get("ambiguous_with") else ""))
-    if not contract["findings"]:
-        print("no finding: the data give no significant evidence against the base model")
+    print_summary(contract)
     if args.json:
         atomic_write_text(output(args.json), json.dumps(contract, indent=1, default=plain) + "\n")
         log.info("wrote %s", args.json)
@@ -44,6 +37,41 @@ def audit(args) -> None:
         from selfcal.audit.report import write_report
         write_report(run.result, output(args.report), run.report_extras(str(args.recording)))
         print(f"report: {args.report}")
+
+
+def print_summary(contract: dict) -> None:
+    """What the audit found, what passed the significance test but was not accepted, and what remains."""
+    for finding in contract["findings"]:
+        gain, unit = finding["gain"], f" {finding['gain'].get('unit') or ''}".rstrip()
+        name = finding["effect"] if finding["effect"] != "unlisted" else f"unlisted: {finding['meaning']}"
+        print(f"found {name} ({finding['target']}): RMS {gain['rms_before']:.4g} -> {gain['rms_after']:.4g}{unit}, "
+              f"held-out {gain['heldout_rms_before']:.4g} -> {gain['heldout_rms_after']:.4g}{unit}"
+              + (" [ambiguous with " + ", ".join(r["effect"] for r in finding["ambiguous_with"]) + "]"
+                 if finding.get("ambiguous_with") else "")
+              + (f" [same as the library term {finding['same_as']['form']} in {finding['same_as']['driver']}]"
+                 if finding.get("same_as") else ""))
+    rejected = contract.get("rejected", [])
+    for entry in rejected:
+        what = entry["effect"] if entry["effect"] != "unlisted" else f"{entry['form']} in {entry['driver']}"
+        print(f"not accepted: {what} ({entry['target']}, p={entry['evidence']['p_value']:.2g}): {REASONS[entry['reason']]}")
+    if not contract["findings"]:
+        if rejected:
+            print(f"no finding accepted: {len(rejected)} candidate(s) passed the significance test but were "
+                  "rejected (above)")
+        else:
+            print("no finding: the data give no significant evidence against the base model")
+    for label, verdict in contract.get("remaining", {}).items():
+        if verdict["verdict"] == "structure_remains":
+            strongest = verdict.get("strongest") or {}
+            term = (f"strongest term {strongest['form']} in {strongest['driver']}, p={strongest['p_value']:.2g}"
+                    if strongest else "")
+            white = (f"whiteness p={verdict['whiteness_p']:.2g}" if verdict.get("whiteness_p") is not None else "")
+            print(f"structure remains in {label}: " + "; ".join(x for x in (term, white) if x))
+
+
+REASONS = {"bic": "the BIC does not fall", "heldout": "does not predict held-out data",
+           "implausible": "estimate outside its physically plausible range",
+           "outdone": "a library term explains the same residual better"}
 
 
 VERBS = (Verb("audit", "find what the model gets wrong in a recording, name the cause, measure the gain",

@@ -63,6 +63,23 @@ def marginal_covariances(graph, values, keys, what: str) -> dict[int, np.ndarray
         return dense_marginals(graph, values, keys, what)
 
 
+def joint_covariance(graph, values, keys, what: str) -> np.ndarray:
+    """Joint marginal covariance of several keys (in the given order, each key's tangent block in turn)."""
+    keys = list(keys)
+    try:
+        return np.array(gtsam.Marginals(graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix())
+    except RuntimeError:
+        A, _, offsets = dense_jacobian(graph, values)
+        scale = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+        eigenvalues, vectors = np.linalg.eigh((A / scale).T @ (A / scale))
+        if eigenvalues.min() <= 1e-13 * eigenvalues.max():
+            raise DegenerateDataError(f"the data do not determine {what} (singular information matrix)") from None
+        covariance = (vectors / eigenvalues) @ vectors.T / np.outer(scale, scale)
+        tangent = values.zeroVectors()
+        idx = np.concatenate([np.arange(offsets[k], offsets[k] + tangent.at(k).size) for k in keys])
+        return covariance[np.ix_(idx, idx)]
+
+
 def dense_jacobian(graph, values) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
     """Whitened Jacobian ``A``, right-hand side ``b`` and each key's first column, linearised at ``values``."""
     ordering = gtsam.Ordering()

@@ -8,7 +8,14 @@ Residual families (evaluated from the parameters alone, so held-out poses are pr
   accelerometer; coordinates: the move's rotation vector ``rot_x/y/z``, time, channels
 
 Catalog (ARCHITECTURE.md's IMU table, plus ``bias_drift``: bias linear in time, the deterministic part of a
-wandering bias, and the rival a channel collinear with time must be told apart from):
+wandering bias, and the rival a channel collinear with time must be told apart from).
+
+Generic terms (:mod:`selfcal.audit.terms`) are corrections of the accelerometer's or the gyro's output (all
+three axes) by a function of one driver, fitted in the graph as bias slopes on derived channels (the basis
+columns evaluated at every static pose and every sample of every move).  Drivers: time, the auxiliary channels,
+the raw specific force ``f_x f_y f_z`` and, for the gyro in the moves (target ``gyro_motion``), the raw rate
+``w_x w_y w_z`` and its norm ``w_norm``.  Catalog effects that are library terms keep their catalog names
+(``bias_drift`` = poly1 in time, ``bias_temperature`` and ``channel:<name>`` = poly1 in that channel).
 """
 from __future__ import annotations
 
@@ -17,9 +24,11 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from selfcal.audit import terms as library
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.terms import Coordinate
 from selfcal.graphs import imu as gi
-from selfcal.core.solve import marginal_covariances, optimize
+from selfcal.core.solve import joint_covariance, marginal_covariances, optimize
 from selfcal.io.recording import ImuData
 from selfcal.models import imu
 from selfcal.core import so3
@@ -37,8 +46,31 @@ MEANINGS = {
 }
 
 
+# physically plausible sizes of the catalog effects: beyond them, a unit error or an effect outside the catalog
+# is the likelier cause (MEMS datasheets give scale errors of a few %, axis misalignment of about 1 deg,
+# g-sensitivity up to about 0.1 deg/s/g = 1.7e-4 rad/s per m/s^2)
+PLAUSIBLE = {"accel_scale": ("scale", 0.10), "gyro_scale": ("scale", 0.10),
+             "accel_misalignment": ("angles", 0.10), "gyro_misalignment": ("angles", 0.10),
+             "gyro_g_sensitivity": ("matrix", 1e-2)}
+STATE_DRIVERS = {"accel": ("f_x", "f_y", "f_z"), "gyro": ("f_x", "f_y", "f_z"),
+                 "gyro_motion": ("w_x", "w_y", "w_z", "w_norm")}
+QUANTITY_OF_TARGET = {"accel": "accel", "gyro": "gyro", "gyro_motion": "gyro"}
+
+
 def is_temperature(channel: str) -> bool:
     return channel.lower().startswith("temp")
+
+
+def plausibility(candidate: Candidate, estimate: dict) -> str | None:
+    """Why a catalog estimate is physically implausible (None: plausible)."""
+    if candidate.effect not in PLAUSIBLE:
+        return None
+    key, limit = PLAUSIBLE[candidate.effect]
+    largest = float(np.max(np.abs(estimate[key])))
+    if largest <= limit:
+        return None
+    return (f"{candidate.effect} of {largest:.3g} exceeds the plausible {limit:g}: a unit error or an effect "
+            "outside the catalog is the likelier cause")
 
 
 class ImuIntrinsicsAudit:
@@ -50,6 +82,8 @@ class ImuIntrinsicsAudit:
         timed = replace(data, channels={**data.channels, TIME_CHANNEL: data.t_s},
                         channel_units={**data.channel_units, TIME_CHANNEL: "s"})
         self.problem = gi.problem_from_imu(timed, gravity_m_s2)
+        self._derived: dict[library.Term, tuple[str, ...]] = {}  # a term's derived channels in the problem
+        self._drivers = self._driver_values()
         self.sensor = data.name
         self.base_model = base
         catalog = self.candidates()
@@ -86,9 +120,8 @@ class ImuIntrinsicsAudit:
                Candidate("gyro_g_sensitivity", s, MEANINGS["gyro_g_sensitivity"], "gyro", "orientation")]
         for quantity in ("accel", "gyro"):
             out.append(Candidate("bias_drift", s, MEANINGS["bias_drift"], quantity, "time"))
-            for channel in self.problem.channel_refs:
-                if channel == TIME_CHANNEL:
-                    continue
+            for channel in self._aux_channels():
+
                 if is_temperature(channel):
                     out.append(Candidate("bias_temperature", s, MEANINGS["bias_temperature"], quantity, channel))
                 else:
@@ -98,6 +131,11 @@ class ImuIntrinsicsAudit:
                                          quantity, channel))
         return out
 
+    def _aux_channels(self) -> list[str]:
+        """The recording's auxiliary channels (not time, not the library's derived channels)."""
+        derived = {n for names in self._derived.values() for n in names}
+        return [n for n in self.problem.channel_refs if n != TIME_CHANNEL and n not in derived]
+
     @staticmethod
     def _channel_of(c: Candidate) -> str | None:
         if c.effect == "bias_drift":
@@ -106,14 +144,87 @@ class ImuIntrinsicsAudit:
             return c.coordinate
         return None
 
+    def _channels_of(self, c: Candidate) -> tuple[str, ...]:
+        """The bias channels a candidate adds (one for a catalog channel effect, the basis for a term)."""
+        if c.term is not None:
+            return self._derived_channels(c.term)
+        channel = self._channel_of(c)
+        return (channel,) if channel else ()
+
+    def plausible(self, candidate: Candidate, estimate: dict) -> str | None:
+        return plausibility(candidate, estimate)
+
+    def catalog_term(self, candidate: Candidate) -> tuple[str, str] | None:
+        """The library term a catalog effect is: a bias linear in time or in a channel."""
+        channel = self._channel_of(candidate)
+        return ("time" if channel == TIME_CHANNEL else channel, "poly1") if channel else None
+
+    # --- the generic term library ---------------------------------------------------------------------------
+
+    def _driver_values(self) -> dict[str, tuple[dict, list[dict]]]:
+        """Every driver at the static poses and at every sample of every move: (pose values, [move values])."""
+        p = self.problem
+        poses = {"time": np.array([q.time_s for q in p.poses])}
+        moves = [{"time": np.asarray(m.time_s, dtype=float)} for m in p.moves]
+        for name in self._aux_channels():
+            poses[name] = np.array([q.channels[name] for q in p.poses])
+            for m, values in zip(p.moves, moves):
+                values[name] = np.asarray(m.channels[name], dtype=float)
+        for axis, j in zip("xyz", range(3)):
+            poses[f"f_{axis}"] = np.array([q.accel_mean[j] for q in p.poses])
+            poses[f"w_{axis}"] = np.array([q.gyro_mean[j] for q in p.poses])
+            for m, values in zip(p.moves, moves):
+                values[f"f_{axis}"], values[f"w_{axis}"] = m.accel_raw[:, j], m.gyro_raw[:, j]
+        poses["w_norm"] = np.linalg.norm([q.gyro_mean for q in p.poses], axis=1)
+        for m, values in zip(p.moves, moves):
+            values["w_norm"] = np.linalg.norm(m.gyro_raw, axis=1)
+        return {"poses": poses, "moves": moves}
+
+    def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        """Drivers per target: the static poses' for ``accel`` and ``gyro``, the moves' samples for
+        ``gyro_motion`` (where a rate-dependent gyro error shows)."""
+        poses, moves = self._drivers["poses"], self._drivers["moves"]
+        units = {**self.problem.channel_units, "time": "s", **{f"f_{a}": "m s^-2" for a in "xyz"},
+                 **{f"w_{a}": "rad s^-1" for a in "xyz"}, "w_norm": "rad s^-1"}
+        shared = ["time", *self._aux_channels()]
+        out = {}
+        for target, states in STATE_DRIVERS.items():
+            if target == "gyro_motion":
+                if not moves:
+                    continue
+                values = {n: np.concatenate([m[n] for m in moves]) for n in (*shared, *states)}
+            else:
+                values = {n: poses[n] for n in (*shared, *states)}
+            out[(self.sensor, target)] = (
+                [Coordinate(n, values[n], units.get(n, ""), "time" if n == "time" else "channel",
+                            solo=target != "gyro_motion") for n in shared]
+                + [Coordinate(n, values[n], units[n], "state") for n in states])
+        return out
+
+    def _derived_channels(self, term: library.Term) -> tuple[str, ...]:
+        """The term's basis columns as channels of the problem, at every pose and move sample (added once)."""
+        if term not in self._derived:
+            p = self.problem
+            pose_columns = term.columns(self._drivers["poses"])
+            move_columns = [term.columns(values) for values in self._drivers["moves"]]
+            names = tuple(f"{term.label}#{i}" for i in range(pose_columns.shape[1]))
+            for i, name in enumerate(names):
+                for k, pose in enumerate(p.poses):
+                    pose.channels[name] = float(pose_columns[k, i])
+                for move, columns in zip(p.moves, move_columns):
+                    move.channels[name] = columns[:, i]
+                p.channel_refs[name] = 0.0  # the basis is centred on the driver's range; the bias takes the rest
+            self._derived[term] = names
+        return self._derived[term]
+
     def spec_for(self, effects) -> gi.IntrinsicsSpec:
         names = {c.effect for c in effects}
         accel_free = sorted((gi.ACCEL_DIAGONAL if "accel_scale" in names else ())
                             + (gi.ACCEL_OFF_DIAGONAL if "accel_misalignment" in names else ()))
         gyro_free = sorted((gi.GYRO_DIAGONAL if "gyro_scale" in names else ())
                            + (gi.GYRO_OFF_DIAGONAL if "gyro_misalignment" in names else ()))
-        channels = {q: tuple(self._channel_of(c) for c in effects if self._channel_of(c) and c.target == q)
-                    for q in ("accel", "gyro")}
+        channels = {q: tuple(n for c in effects if QUANTITY_OF_TARGET.get(c.target) == q
+                             for n in self._channels_of(c)) for q in ("accel", "gyro")}
         return gi.IntrinsicsSpec(tuple(accel_free), tuple(gyro_free), "gyro_g_sensitivity" in names,
                                  channels["accel"], channels["gyro"])
 
@@ -163,6 +274,20 @@ class ImuIntrinsicsAudit:
                 new_columns.append((key, np.arange(values.atVector(key).size)))
         return built.graph, values, new_columns
 
+    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+        """One graph holding every library candidate (slopes at zero) for the engine's batched score tests:
+        (graph, values, each candidate's new columns)."""
+        built = gi.build_graph(self.problem, self.spec_for(fit.effects + tuple(candidates)), huber_k=None,
+                               pose_indices=fit.context.pose_indices)
+        values = gtsam.Values()
+        for key in built.values.keys():
+            values.insert(key, _get(fit.values, key) if fit.values.exists(key)
+                          else np.zeros_like(built.values.atVector(key)))
+        slots = {"accel": dict(built.accel_keys.channels), "gyro": dict(built.gyro_keys.channels)}
+        groups = [[(slots[QUANTITY_OF_TARGET[c.target]][name], np.arange(3)) for name in self._channels_of(c)]
+                  for c in candidates]
+        return built.graph, values, groups
+
     def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
         test = [k for k in range(len(self.problem.poses)) if k not in self._fold_poses[fold]]
         return self._families(fit.context, fit.values, test)
@@ -173,13 +298,14 @@ class ImuIntrinsicsAudit:
         p = self.problem
         accel, gyro = built.accel(values), built.gyro(values)
         slopes = built.channel_slopes(values)
-        channel_names = [n for n in p.channel_refs if n != TIME_CHANNEL]
+        channel_names = self._aux_channels()
 
         def bias_offset(quantity, deviation):
             """sum of slope x channel deviation: (3,) for a pose, (n, 3) for the samples of a move."""
             return sum((np.multiply.outer(deviation[n], slopes[quantity][n]) for n in slopes[quantity]), 0.0)
 
-        f, up, coords = [], [], {k: [] for k in ("time_s", "up_x", "up_y", "up_z", *channel_names)}
+        f, up = [], []
+        coords = {k: [] for k in ("time_s", "up_x", "up_y", "up_z", "f_x", "f_y", "f_z", *channel_names)}
         accel_sig, gyro_res, gyro_sig = [], [], []
         for k in poses:
             pose, dev = p.poses[k], p.pose_deviation(k)
@@ -193,6 +319,8 @@ class ImuIntrinsicsAudit:
             coords["time_s"].append(pose.time_s)
             for axis, value in zip(("up_x", "up_y", "up_z"), uk):
                 coords[axis].append(value)
+            for axis, value in zip(("f_x", "f_y", "f_z"), pose.accel_mean):  # raw, the library's drivers
+                coords[axis].append(value)
             for n in channel_names:
                 coords[n].append(pose.channels[n])
         coords = {k: np.asarray(v) for k, v in coords.items()}
@@ -203,7 +331,8 @@ class ImuIntrinsicsAudit:
             ResidualFamily(self.sensor, "gyro", "rad s^-1", np.asarray(gyro_res) / np.asarray(gyro_sig),
                            np.asarray(gyro_res), coords, tuple(channel_names))]
         motion, motion_sig = [], []
-        mcoords = {k: [] for k in ("time_s", "rot_x", "rot_y", "rot_z", *channel_names)}
+        mcoords = {k: [] for k in ("time_s", "rot_x", "rot_y", "rot_z", "w_x", "w_y", "w_z", "w_norm",
+                                   *channel_names)}
         index = {k: i for i, k in enumerate(poses)}
         for k in poses:
             if k + 1 not in index or k >= len(p.moves):
@@ -218,6 +347,9 @@ class ImuIntrinsicsAudit:
             mcoords["time_s"].append(float(np.mean(move.time_s)))
             for axis, value in zip(("rot_x", "rot_y", "rot_z"), rot):
                 mcoords[axis].append(value)
+            mean_rate = np.mean(move.gyro_raw, axis=0)  # the move's mean raw rate: where rate-driven terms show
+            for axis, value in zip(("w_x", "w_y", "w_z", "w_norm"), (*mean_rate, np.linalg.norm(mean_rate))):
+                mcoords[axis].append(value)
             for n in channel_names:
                 mcoords[n].append(float(np.mean(move.channels[n])))
         if motion:
@@ -230,6 +362,8 @@ class ImuIntrinsicsAudit:
     # --- estimates in the contract's keys -------------------------------------------------------------------
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        if candidate.term is not None:
+            return self._term_estimate(fit, candidate)
         built: gi.IntrinsicsGraph = fit.context
         values = fit.values
         keys = [k for k in (gi.ACCEL_M, gi.GYRO_M, gi.GYRO_A) if values.exists(k)]
@@ -266,6 +400,23 @@ class ImuIntrinsicsAudit:
         target = f"{self.sensor}/{candidate.target}"
         return ({"slope": values.atVector(key).tolist(), "unit": f"{unit} per {per}", "target": target},
                 {"slope": np.sqrt(np.diag(cov[key])).tolist()})
+
+    def _term_estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        """A generic term's coefficients (bias slopes of its derived channels, all axes) in the driver's units."""
+        built: gi.IntrinsicsGraph = fit.context
+        quantity = QUANTITY_OF_TARGET[candidate.target]
+        slot = dict((built.accel_keys if quantity == "accel" else built.gyro_keys).channels)
+        keys = [slot[name] for name in self._derived_channels(candidate.term)]
+        joint = joint_covariance(fit.graph, fit.values, keys, "the audited term")
+        coefficients = np.array([fit.values.atVector(k) for k in keys])
+        coordinates = {c.name: c.values for c in self.term_coordinates()[(self.sensor, candidate.target)]}
+        unit = "m s^-2" if quantity == "accel" else "rad s^-1"
+        driver_unit = next(c.unit for c in self.term_coordinates()[(self.sensor, candidate.target)]
+                           if c.name == candidate.term.driver)
+        estimate, std = library.describe(candidate.term, coefficients, joint * variance_factor(fit), coordinates, unit,
+                                         driver_unit)
+        estimate["target"] = f"{self.sensor}/{candidate.target}"
+        return estimate, std
 
 
 def _get(values: gtsam.Values, key: int):
@@ -317,3 +468,4 @@ def simulate_like(system: ImuIntrinsicsAudit, fit: Fit, seed: int) -> ImuIntrins
     twin.__dict__.update(system.__dict__)
     twin.problem = replace(p, poses=poses, moves=moves)
     return twin
+

@@ -1,7 +1,9 @@
 """The static-recording system for the audit: one IMU at rest in one orientation (bias and noise logs).
 
 The recording is cut into segments of ``segment_s``; each segment's mean is one residual per axis.  Base model:
-a constant bias per axis.  Catalog: ``bias_drift`` (bias linear in time), ``bias_temperature`` (bias linear
+a constant bias per axis.  Generic terms (:mod:`selfcal.audit.terms`) are bias corrections by a function of time
+or of an auxiliary channel, fitted as bias slopes on derived channels (the basis columns per segment); the
+sensor's own outputs are not offered as drivers (a segment mean would explain its own noise).  Catalog: ``bias_drift`` (bias linear in time), ``bias_temperature`` (bias linear
 in a temperature channel) and ``channel:<name>`` (any other auxiliary channel), for accelerometer and gyro.
 A slowly wandering bias (random walk) looks like drift over one half of the log and fails to predict the
 other half, so the held-out test keeps it out of the deterministic findings; the Allan analysis
@@ -12,11 +14,13 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from selfcal.audit import terms as library
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
 from selfcal.audit.imu.intrinsics import MEANINGS, is_temperature
+from selfcal.audit.terms import Coordinate
 from selfcal.audit.noise import noise_audit
 from selfcal.factors.imu import linear_bias_factor
-from selfcal.core.solve import gaussian, marginal_covariances, optimize
+from selfcal.core.solve import gaussian, joint_covariance, marginal_covariances, optimize
 from selfcal.io.recording import ImuData
 
 QUANTITIES = {"accel": ("m s^-2", "accel_m_s2"), "gyro": ("rad s^-1", "gyro_rad_s")}
@@ -72,6 +76,7 @@ class ImuStaticAudit:
         self.channels["time_s"] = self.time_s
         self.channel_units["time_s"] = "s"
         self.refs = {name: float(np.mean(v)) for name, v in self.channels.items()}
+        self._derived: dict[library.Term, tuple[str, ...]] = {}
         half = len(self.time_s) // 2
         self._folds = [np.arange(half), np.arange(half, len(self.time_s))]
 
@@ -80,7 +85,7 @@ class ImuStaticAudit:
         for q in QUANTITIES:
             out.append(Candidate("bias_drift", self.sensor, MEANINGS["bias_drift"], q, "time"))
             for name in self.channels:
-                if name == "time_s":
+                if name == "time_s" or name in self._derived_names():
                     continue
                 if is_temperature(name):
                     out.append(Candidate("bias_temperature", self.sensor, MEANINGS["bias_temperature"], q, name))
@@ -94,12 +99,51 @@ class ImuStaticAudit:
     def _channel(c: Candidate) -> str:
         return "time_s" if c.effect == "bias_drift" else c.coordinate
 
+    def _channels_of(self, c: Candidate) -> tuple[str, ...]:
+        return self._derived_channels(c.term) if c.term is not None else (self._channel(c),)
+
     def _keys(self, effects):
         """Bias key per quantity and (channel, key) slopes per quantity, in a fixed order."""
         keys = {q: (gtsam.symbol("b", i), []) for i, q in enumerate(QUANTITIES)}
-        for j, c in enumerate(effects):
-            keys[c.target][1].append((self._channel(c), gtsam.symbol("k", j)))
+        j = 0
+        for c in effects:
+            for channel in self._channels_of(c):
+                keys[c.target][1].append((channel, gtsam.symbol("k", j)))
+                j += 1
         return keys
+
+    # --- the generic term library -----------------------------------------------------------------------------
+
+    def catalog_term(self, candidate: Candidate) -> tuple[str, str] | None:
+        """bias_drift is poly1 in time; bias_temperature and channel:<name> are poly1 in that channel."""
+        if candidate.term is not None:
+            return None
+        return ("time" if candidate.effect == "bias_drift" else candidate.coordinate, "poly1")
+
+    def _drivers(self) -> dict[str, np.ndarray]:
+        return {"time": self.time_s, **{n: v for n, v in self.channels.items() if n != "time_s"
+                                        and n not in self._derived_names()}}
+
+    def _derived_names(self) -> set[str]:
+        return {n for names in self._derived.values() for n in names}
+
+    def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        drivers = self._drivers()
+        units = {"time": "s", **self.channel_units}
+        coordinates = [Coordinate(n, v, units.get(n, ""), "time" if n == "time" else "channel")
+                       for n, v in drivers.items()]
+        return {(self.sensor, q): coordinates for q in QUANTITIES}
+
+    def _derived_channels(self, term: library.Term) -> tuple[str, ...]:
+        """The term's basis columns as per-segment channels (centred on the driver's range; ref 0)."""
+        if term not in self._derived:
+            columns = term.columns(self._drivers())
+            names = tuple(f"{term.label}#{i}" for i in range(columns.shape[1]))
+            for i, name in enumerate(names):
+                self.channels[name] = columns[:, i]
+                self.refs[name] = 0.0
+            self._derived[term] = names
+        return self._derived[term]
 
     def _graph(self, effects, rows):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -120,27 +164,52 @@ class ImuStaticAudit:
 
     def extend(self, fit: Fit, candidate: Candidate):
         graph, values = self._graph(fit.effects + (candidate,), fit.context["rows"])
-        new_key = gtsam.symbol("k", len(fit.effects))
         for key in fit.values.keys():
             values.update(key, fit.values.atVector(key))
-        return graph, values, [(new_key, np.arange(3))]
+        new_keys = [key for key in values.keys() if not fit.values.exists(key)]
+        return graph, values, [(key, np.arange(3)) for key in new_keys]
+
+    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+        """One graph holding every library candidate (slopes at zero): (graph, values, new columns each)."""
+        effects = fit.effects + tuple(candidates)
+        graph, values = self._graph(effects, fit.context["rows"])
+        for key in fit.values.keys():
+            values.update(key, fit.values.atVector(key))
+        keys = self._keys(effects)
+        groups = []
+        for c in candidates:
+            slot = dict(keys[c.target][1])
+            groups.append([(slot[name], np.arange(3)) for name in self._channels_of(c)])
+        return graph, values, groups
 
     def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
         return self._families(fit.effects, fit.values, self._folds[1 - fold])
 
     def _families(self, effects, values, rows) -> list[ResidualFamily]:
-        coords = {"time_s": self.time_s[rows], **{n: v[rows] for n, v in self.channels.items() if n != "time_s"}}
+        derived = self._derived_names()
+        coords = {"time_s": self.time_s[rows], **{n: v[rows] for n, v in self.channels.items()
+                                                  if n != "time_s" and n not in derived}}
         out = []
         for q, (bias_key, slopes) in self._keys(effects).items():
             predicted = values.atVector(bias_key) + sum(
                 (np.multiply.outer(self.channels[n][rows] - self.refs[n], values.atVector(k)) for n, k in slopes), 0.0)
             resid = self.means[q][rows] - predicted
             out.append(ResidualFamily(self.sensor, q, QUANTITIES[q][0], resid / self.sigma[q], resid, coords,
-                                      tuple(n for n in self.channels if n != "time_s")))
+                                      tuple(n for n in coords if n != "time_s")))
         return out
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         keys = self._keys(fit.effects)
+        if candidate.term is not None:
+            slot = dict(keys[candidate.target][1])
+            term_keys = [slot[n] for n in self._derived_channels(candidate.term)]
+            joint = joint_covariance(fit.graph, fit.values, term_keys, "the audited term") * variance_factor(fit)
+            units = {"time": "s", **self.channel_units}
+            estimate, std = library.describe(candidate.term, np.array([fit.values.atVector(k) for k in term_keys]),
+                                             joint, self._drivers(), QUANTITIES[candidate.target][0],
+                                             units.get(candidate.term.driver, ""))
+            estimate["target"] = f"{self.sensor}/{candidate.target}"
+            return estimate, std
         key = dict(keys[candidate.target][1])[self._channel(candidate)]
         cov = marginal_covariances(fit.graph, fit.values, [key], candidate.effect)[key] * variance_factor(fit)
         per = self.channel_units.get(self._channel(candidate), "")

@@ -97,6 +97,13 @@ def finding_figure(before: ResidualFamily, after: ResidualFamily, coordinate: st
             ax = axes[row, col]
             x = np.asarray(fam.coordinates.get(cname, np.full(len(phys), np.nan)), dtype=float)
             _scatter_components(ax, x, phys, names)
+            if row == 0 and effect.startswith("unlisted") and len(after.physical) == len(fam.physical):
+                # the library term's share: what the model with it takes out of each residual
+                change = (np.asarray(fam.physical, dtype=float) - np.asarray(after.physical, dtype=float)).reshape(
+                    len(phys), -1) * factor
+                for j in range(change.shape[1]):
+                    ax.scatter(x, change[:, j], s=14, marker="x", color="black", linewidths=0.8,
+                               label="fitted term" if j == 0 else None)
             if row == 1:
                 ax.set_xlabel(COORDINATE_LABELS.get(cname, cname))
             if col == 0:

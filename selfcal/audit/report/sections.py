@@ -21,6 +21,7 @@ def page(result: AuditResult, extras: dict | None = None) -> dict:
     extras = dict(extras or {})
     return {"header": header(result, extras), "summary": summary(result, extras.get("noise_findings", [])),
             "findings": findings_table(result), "details": finding_details(result),
+            "remaining": what_remains(result), "n_rejected": len(result.rejected),
             "diagnostics": diagnostics(result.final_fit), "history": history(result),
             "noise": noise(extras["noise"]) if extras.get("noise") else None,
             "simulation": simulation(extras["simulation"]) if extras.get("simulation") else None}
@@ -135,6 +136,25 @@ def findings_table(result: AuditResult) -> list[dict]:
     return rows
 
 
+def what_remains(result: AuditResult) -> dict:
+    """The final model's verdict per family and the candidates that were significant but not accepted."""
+    reasons = {"bic": "BIC does not fall", "heldout": "does not predict held-out data",
+               "implausible": "implausible estimate", "outdone": "outdone by a library term"}
+    rows = []
+    for label, r in result.remaining.items():
+        s = r.get("strongest") or {}
+        term = (f"{s['form']} in {s['driver']}" + (f" x {s['second_driver']}" if s.get("second_driver") else "")
+                if s else "-")
+        rows.append({"label": label, "verdict": r["verdict"], "term": term, "p_value": s.get("p_value"),
+                     "whiteness_p": r.get("whiteness_p")})
+    tests = {(r.get("strongest") or {}).get("test") for r in result.remaining.values()} - {None}
+    rejected = [{"name": r["effect"] if r["effect"] != "unlisted" else f"{r['form']} in {r['driver']}",
+                 "target": r["target"], "p_value": r["evidence"]["p_value"],
+                 "reason": reasons.get(r["reason"], r["reason"]) + (f": {r['why']}" if r.get("why") else "")}
+                for r in result.rejected]
+    return {"rows": rows, "rejected": rejected, "test": "; ".join(sorted(tests)) or "none"}
+
+
 # --- why each finding is believable -------------------------------------------------------------------------------
 
 def finding_details(result: AuditResult) -> list[dict] | None:
@@ -165,7 +185,9 @@ def finding_details(result: AuditResult) -> list[dict] | None:
         if item["ambiguity"] and fam_before is not None:
             item["ambiguity_figures"] = _ambiguity_figures(finding, cand, fam_before)
         if fam_before is not None and fam_after is not None:
-            fig = finding_figure(fam_before, fam_after, cand.coordinate, finding["effect"])
+            name = (finding["effect"] if finding["effect"] != "unlisted"
+                    else f"unlisted: {finding['form']} in {finding['driver']}")
+            fig = finding_figure(fam_before, fam_after, cand.coordinate, name)
             item["figure"] = {"uri": figure_to_data_uri(fig), "coordinates": plot_coordinates(cand.coordinate,
                                                                                                 fam_before),
                               "model_name": _model_name(result, i), "rms_before": fam_before.rms,
