@@ -7,6 +7,7 @@ modules of :data:`SHARED`.  Known errors (:data:`selfcal.core.errors.USER_ERRORS
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 import logging
 import sys
@@ -23,12 +24,20 @@ GROUPS = {  # verbs that take a system as their next word
 SHARED = ("audit", "importers", "streams", "fleet")  # cli modules of the verbs every system shares
 
 
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        return version("selfcal")
-    except PackageNotFoundError:  # running from a source tree that was never installed
-        return "unknown"
+class _Version(argparse.Action):
+    """``--version``: the installed package's version, looked up only when asked (importlib.metadata is slow)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, help="show the version and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from importlib.metadata import PackageNotFoundError, version
+        try:
+            number = version("selfcal")
+        except PackageNotFoundError:  # a source tree that was never installed
+            number = "unknown"
+        print(f"selfcal {number}")
+        parser.exit()
 
 
 def _add_verb(subparsers, name: str, verb: Verb) -> None:
@@ -41,7 +50,7 @@ def build_parser() -> Parser:
     parser = Parser(prog="selfcal", description="Instrument self-calibration and sensor fusion as GTSAM factor "
                                                 "graphs, and an audit of what the model gets wrong.")
     parser.add_argument("-v", "--verbose", action="store_true", help="progress and diagnostics on stderr")
-    parser.add_argument("--version", action="version", version=f"selfcal {_version()}")
+    parser.add_argument("--version", action=_Version)
     verbs = parser.add_subparsers(dest="verb", required=True, parser_class=Parser)
     groups = {name: verbs.add_parser(name, help=text, description=text).add_subparsers(
         dest="system", required=True, parser_class=Parser) for name, text in GROUPS.items()}
