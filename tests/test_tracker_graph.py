@@ -227,7 +227,7 @@ def test_own_vibration_thresholds_have_their_stated_tail():
 
 def test_closed_form_whitening_matches_numpy():
     """The online gate's closed-form Cholesky whitening (2x2, 3x3) equals numpy's at random SPD matrices."""
-    from selfcal.graphs.tracker import _inverse_cholesky, _whiten
+    from selfcal.graphs.tracker.gate import inverse_cholesky as _inverse_cholesky, whiten as _whiten
     rng = np.random.default_rng(4)
     for n in (2, 3, 4):
         for _ in range(20):

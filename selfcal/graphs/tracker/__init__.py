@@ -35,8 +35,6 @@ all keyframes, Gauss-Newton from the online estimates, Levenberg-Marquardt if a 
 from selfcal.graphs.tracker.batch import batch_smooth, gauss_newton
 from selfcal.graphs.tracker.eigen import EigenDetector
 from selfcal.graphs.tracker.estimator import TrackerEstimator
-from selfcal.graphs.tracker.gate import inverse_cholesky as _inverse_cholesky  # noqa: F401  (the tests' name)
-from selfcal.graphs.tracker.gate import whiten as _whiten  # noqa: F401  (the tests' name)
 from selfcal.graphs.tracker.options import UNGATED, GatingOptions, SensorNoise, TrackerOptions
 
 __all__ = ["UNGATED", "EigenDetector", "GatingOptions", "SensorNoise", "TrackerEstimator", "TrackerOptions",
