@@ -379,11 +379,9 @@ class _Search:
         self.findings, self.history = [], []
 
     def library_tests(self, generic: list[Candidate]) -> float:
-        """The effective number of library tests: correlated terms count once (Li & Ji), a searched step
-        location counts for the locations tried."""
-        m_eff = max(library.effective_number(self._first_columns(generic)), 1.0)
-        steps = sum(1 for c in generic if c.term.form == "step")
-        return m_eff + steps * (library.STEP_LOCATIONS - 1) / library.STEP_LOCATIONS
+        """The effective number of library tests: correlated terms (nested polynomials, neighbouring step
+        locations, the same driver for two targets' rows) count as far as they are independent (Li & Ji)."""
+        return max(library.effective_number(self._first_columns(generic)), 1.0)
 
     def step(self, candidates: list[Candidate], n_tests: float, phase: str):
         """Score every candidate, refit the significant ones in order of evidence, accept the first that passes.
@@ -504,28 +502,28 @@ class _Search:
     def outdone_catalog_effect(self, trial: Trial, among: list[Candidate] | None = None) -> Candidate | None:
         """The catalog finding a significant library term outdoes on the same residual, rejected as such.
 
-        Swap test in the final model, so that the other catalog effects keep what is theirs: with the term in
-        place of the effect, the target's held-out residual must be smaller than with the effect, and the effect
-        must lose its significance on top of the term (the term encompasses it: Davidson & MacKinnon's
-        non-nested comparison).  The term is already significant on top of the whole model (the trial).
+        The term is significant on top of the whole model (the trial).  Swapped in for a catalog effect on the
+        same residual, it must fit better by the BIC, and the effect must lose its significance on top of it: the
+        term encompasses the effect (Davidson & MacKinnon's comparison of non-nested models).  The held-out
+        check is the addition's (a time-driven term fitted on one half of a run cannot predict the other: the
+        swap would fail for the wrong reason).
         """
         term = trial.candidate
         rivals = among if among is not None else [c for c in self.effects if c.term is None and c.sensor == term.sensor
                                                   and c.target == term.target]
         for cand in [c for c in rivals if c not in self.base_fit.effects]:
             swapped = tuple(c for c in self.effects if c != cand) + (term,)
-            held = _heldout(self.system, swapped)
-            if held.rss_by_label.get(cand.label, np.inf) >= self.held.rss_by_label.get(cand.label, -np.inf):
+            swapped_fit = self.system.fit(swapped)
+            delta_bic = swapped_fit.bic() - self.fit.bic()
+            if delta_bic >= 0:
                 continue
-            finding = next(f for f in self.findings if f["effect"] == cand.effect and f["target"] == cand.label)
-            on_top = self.score(cand, self.system.fit(swapped))
+            on_top = self.score(cand, swapped_fit)
             if on_top.p_value < self.alpha / max(len(self.system.candidates()), 1):
                 continue
+            finding = next(f for f in self.findings if f["effect"] == cand.effect and f["target"] == cand.label)
             self.reject(Trial(cand, finding["evidence"]["statistic"], finding["evidence"]["p_value"], 0),
                         Rejection("outdone", {
-                            "heldout_target_rss_catalog": self.held.rss_by_label.get(cand.label),
-                            "heldout_target_rss_term": held.rss_by_label.get(cand.label),
-                            "p_value_on_top_of_term": on_top.p_value,
+                            "delta_bic_swapped": delta_bic, "p_value_on_top_of_term": on_top.p_value,
                             "outdone_by": {"driver": term.term.driver, "form": term.term.form,
                                            "meaning": term.meaning}}))
             return cand
@@ -606,20 +604,27 @@ class _Search:
         return out
 
     def _first_columns(self, candidates: list[Candidate]) -> list[np.ndarray]:
-        """Each candidate's first basis column at its target's driver values (for the effective number)."""
+        """Each candidate's basis columns at its target's driver values, for the effective number of tests.
+
+        Targets are different residuals, so their tests are independent: each target gets its own block of rows
+        (its columns are zero on the others').  Every basis column of a term counts (a quadratic tests a
+        direction its linear part does not)."""
         drivers = self.system.term_coordinates(self.fit)
-        values = {}
-        for (sensor, target), coordinates in drivers.items():
-            values[(sensor, target)] = {c.name: np.asarray(c.values, dtype=float) for c in coordinates}
-        n = max((len(next(iter(v.values()))) for v in values.values() if v), default=0)
+        blocks = {key: {c.name: np.asarray(c.values, dtype=float) for c in coordinates}
+                  for key, coordinates in drivers.items()}
+        sizes = {key: len(next(iter(v.values()))) if v else 0 for key, v in blocks.items()}
+        offsets, total = {}, 0
+        for key, size in sizes.items():
+            offsets[key], total = total, total + size
         columns = []
         for c in candidates:
-            coords = values[(c.sensor, c.target)]
-            col = c.term.columns(coords)[:, 0]
-            # targets with other row sets are padded apart: they never correlate with each other
-            columns.append(np.pad(col, (0, n - col.size)) if col.size < n else col)
-        length = max(len(col) for col in columns)
-        return [np.pad(col, (0, length - col.size)) for col in columns]
+            key = (c.sensor, c.target)
+            basis = c.term.columns(blocks[key])
+            for j in range(basis.shape[1]):
+                col = np.zeros(total)
+                col[offsets[key]:offsets[key] + sizes[key]] = basis[:, j]
+                columns.append(col)
+        return columns
 
     def strongest_terms(self) -> dict[str, dict]:
         """Per target family: the library term with the most evidence on top of the final model (the graph's

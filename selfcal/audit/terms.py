@@ -27,8 +27,8 @@ product     ``(x / h) v``             a state driver times a centred        stat
                                       time/channel driver (a drifting gain)
 ==========  ==========================================================  =========================
 
-A step's location and a harmonic's frequency are chosen from the data, so each counts for more than one
-candidate in the multiple-testing correction (:func:`effective_number`).
+A step's locations are candidates of their own; neighbouring ones are nearly the same test, which the effective
+number of tests accounts for (:func:`effective_number`).
 
 References
 ----------
@@ -43,8 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-STEP_LOCATIONS = 5  # change points tried: quantiles 25 %..75 % of the driver (each side keeps a quarter of
-# the rows: a step near an end would fit a few rows' noise, not a change)
+STEP_LOCATIONS = 25  # change points tried at most: between consecutive rows of the driver's inner half (each side
+# keeps a quarter of the rows: a step near an end would fit a few rows' noise, not a change)
 ANGLE_HARMONICS = (1, 2)
 MIN_DISTINCT = 4  # a coordinate with fewer distinct values carries no shape to fit
 
@@ -96,7 +96,6 @@ class Form:
     applies: Callable[[Coordinate], bool]
     basis: Callable[[np.ndarray, tuple], np.ndarray]  # (u or raw x, params) -> (n, q) columns
     scaled: bool = True  # the basis takes u (True) or the raw driver (harmonics of angles, steps)
-    dof_per_parameter_choice: int = 1  # candidates it stands for in the multiple-testing correction
 
 
 def _poly(degree: int):
@@ -117,8 +116,7 @@ FORMS: dict[str, Form] = {f.name: f for f in (
     Form("poly1", "linear in", lambda c: True, _poly(1)),
     Form("poly2", "quadratic in", lambda c: True, _poly(2)),
     Form("poly3", "cubic in", lambda c: True, _poly(3)),
-    Form("step", "with a step in", lambda c: c.kind == "time" or _monotone(c.values), _step, scaled=False,
-         dof_per_parameter_choice=STEP_LOCATIONS),
+    Form("step", "with a step in", lambda c: c.kind == "time" or _monotone(c.values), _step, scaled=False),
     Form("harmonic", "harmonic in", lambda c: c.kind in ("angle", "time"), _harmonic, scaled=False),
     Form("product", "linear in the product", lambda c: True, lambda uv, params: uv[:, None]),
 )}
@@ -186,8 +184,7 @@ def terms_for(coordinates: list[Coordinate], residual_for_frequency: np.ndarray 
         for name in ("poly1", "poly2", "poly3"):
             out.append(Term(name, c.name, scale))
         if FORMS["step"].applies(c):
-            inner = np.quantile(c.values, np.linspace(0.25, 0.75, STEP_LOCATIONS))
-            out += [Term("step", c.name, scale, (float(x),)) for x in np.unique(inner)]
+            out += [Term("step", c.name, scale, (x,)) for x in step_locations(c.values)]
         if c.kind == "angle":
             out += [Term("harmonic", c.name, scale, (float(k),)) for k in ANGLE_HARMONICS]
         elif c.kind == "time" and residual_for_frequency is not None and time is not None:
@@ -202,6 +199,18 @@ def terms_for(coordinates: list[Coordinate], residual_for_frequency: np.ndarray 
         out += [Term("product", a.name, Scale(0.0, max(float(np.max(np.abs(a.values))), 1e-300)), (), b.name,
                      Scale.of(b.values)) for a in states for b in others]
     return out
+
+
+def step_locations(values) -> list[float]:
+    """Change points between consecutive distinct values of the driver inside its 25 %..75 % quantiles (at most
+    ``STEP_LOCATIONS``, evenly chosen): a step can sit at any row boundary there, not only on a coarse grid."""
+    v = np.unique(np.asarray(values, dtype=float))
+    lo, hi = np.quantile(values, [0.25, 0.75])
+    mids = 0.5 * (v[1:] + v[:-1])
+    mids = mids[(mids >= lo) & (mids <= hi)]
+    if mids.size > STEP_LOCATIONS:
+        mids = mids[np.round(np.linspace(0, mids.size - 1, STEP_LOCATIONS)).astype(int)]
+    return [float(x) for x in mids]
 
 
 def strongest_frequency(t, x) -> float | None:
