@@ -20,9 +20,11 @@ The full recall / false-finding study over many seeds is ``benchmarks/audit_reca
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from selfcal.audit.engine import run_audit
@@ -185,6 +187,30 @@ def test_pair_lever_arm_is_named_with_its_vector():
     assert names(findings) == ["lever_arm@imu1/pair_accel"]
 
 
+def pair_axis_rotation_scenario(seed: int, rho_rad: float = 5e-3) -> ImuPairScenario:
+    """Each IMU's gyro triad rotated by its own ~``rho_rad`` relative to its accelerometer triad, nothing else."""
+    scenario = pair_scenario(seed)
+    intrinsics = {}
+    for suffix, sub_seed in (("0", 10 + seed), ("1", 20 + seed)):
+        _, intrinsics["gyro" + suffix] = random_intrinsics(sub_seed, scale=(0.0, 0.0), misalignment_rad=0.0,
+                                                           gyro_axis_rotation_rad=rho_rad)
+    return replace(scenario, gyro0=replace(scenario.gyro0, M=intrinsics["gyro0"].M),
+                   gyro1=replace(scenario.gyro1, M=intrinsics["gyro1"].M))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pair_accel_axis_rotation_is_named_with_its_vector(seed):
+    """Gyro triads rotated in their IMUs (M_g = Exp(rho_k)): the gyros fix R = Exp(-rho0) R_true Exp(rho1), so the
+    accelerometers see ``a0 = R (I + [R^T rho0 - rho1]x) a1`` to first order (rho ~ 5 mrad: second order 1e-5)."""
+    scenario = pair_axis_rotation_scenario(seed)
+    findings = audit_pair(scenario, seed).findings
+    found = the_finding(findings, "accel_axis_rotation")
+    rho0, rho1 = (Rotation.from_matrix(g.M).as_rotvec() for g in (scenario.gyro0, scenario.gyro1))
+    assert_within_3_sigma(found, "rho_rad", scenario.R_imu0_imu1.T @ rho0 - rho1)
+    assert_gain(found)
+    assert names(findings) == ["accel_axis_rotation@imu1/pair_accel"]
+
+
 # --- 5. an auxiliary channel of any name ----------------------------------------------------------------------
 
 def test_fan_speed_channel_driving_accel_bias_is_named_with_its_target():
@@ -253,11 +279,14 @@ def test_pair_null_no_finding():
 def test_pair_null_with_scale_and_misalignment_names_no_lever_arm_or_time_offset():
     """Each IMU with its own scale and misalignment errors, no lever arm, no clock offset.
 
-    The different gains are real and belong to the relative-gain entries of the pair catalog; they must not be
-    named as a lever arm or a clock offset, which are not there."""
+    The different gains are real and belong to the relative-gain entries of the pair catalog, and each IMU's
+    gyro triad sits rotated (1 mrad) and sheared differently from its accelerometer triad, which is the pair
+    catalog's accelerometer axis rotation; they must not be named as a lever arm, a clock offset or an unlisted
+    term."""
     named = {seed: names(audit_pair(pair_scenario(seed, realistic=True), seed).findings)
              for seed in PAIR_NULL_SEEDS}
-    allowed = {"accel_relative_gain@imu1/pair_accel", "gyro_relative_gain@imu1/pair_gyro"}
+    allowed = {"accel_relative_gain@imu1/pair_accel", "gyro_relative_gain@imu1/pair_gyro",
+               "accel_axis_rotation@imu1/pair_accel"}
     assert all(set(n) <= allowed for n in named.values()), named
 
 

@@ -213,3 +213,41 @@ def test_warm_up_is_a_polynomial_in_time_and_replaces_the_linear_bias_drift(seed
     ptp, sigma = np.abs(found["estimate"]["peak_to_peak"]), np.asarray(found["std"]["peak_to_peak"])
     assert np.all(np.abs(ptp - ptp_truth) < Z_MAX * sigma + 2 * misfit * np.abs(WARM_UP)), (ptp, ptp_truth, sigma)
     assert_pays(found)
+
+
+# --- 6. the pair: a second-order nonlinearity of imu1's accelerometer -------------------------------------------
+
+ACCEL_K2 = 0.004  # per m s^-2: a_x reads f_x + K f_x^2 (a stiffening proof mass)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pair_accelerometer_nonlinearity_is_named_by_imu1_specific_force_not_as_lever_arm(seed):
+    """No catalog of the pair has a nonlinear accelerometer; it must be named in imu1's own f_x, and neither a
+    lever arm nor a clock offset may be claimed.  Its size: the quadratic coefficient within 3 sigma."""
+    from test_audit_hidden_effects import pair_scenario
+    from selfcal.audit.imu_pair import ImuPairAudit
+    from selfcal.graphs import imu_pair as gp
+    rec = pair_scenario(seed).perturbed_measurements(seed)
+    values = rec.sensors["imu1"].values
+    error_x = ACCEL_K2 * values["a_RS_S_x"] ** 2
+    values["a_RS_S_x"] = values["a_RS_S_x"] + error_x
+    system = ImuPairAudit(rec.imu("imu0"), rec.imu("imu1"))
+    result = run_audit(system)
+    found = unlisted(result.findings, "imu1/pair_accel")
+    assert found["driver"] == "f_x" and found["form"] in ("poly1", "poly2", "poly3"), names(result.findings)
+    assert not [f for f in result.findings if f["effect"] in ("lever_arm", "time_offset")], names(result.findings)
+    if found["form"] == "poly1":  # over a range of one sign the quadratic is a line: no curvature to size
+        return
+    # the truth as the form sees it: the audit low-passes both IMUs (5 Hz) before pairing, and the low-passed
+    # square is not the square of the low-passed signal, so the quadratic fitted to the filtered error against the
+    # filtered f_x (imu1's driver) is what the term can represent
+    imu1 = rec.imu("imu1")
+    filtered = gp.lowpass(error_x, imu1.rate_hz, 5.0)
+    at = np.interp(system.dynamic.t0_s - system.initial_dt_s, imu1.t_s, filtered)
+    k_truth = np.polyfit(system._drivers["f_x"] - found["estimate"]["x0"], at, 2)[0]
+    # the pair residual lives in imu0's axes: imu1's x error appears along R's first column, so the curvature is
+    # the norm of the per-axis quadratic coefficients (its sigma by the delta method), whatever the rotation
+    c2, s2 = (np.asarray(found[k]["coefficients"][1]) for k in ("estimate", "std"))
+    k2 = float(np.linalg.norm(c2))
+    sigma = float(np.sqrt(np.sum((c2 / k2 * s2) ** 2)))
+    assert abs(k2 - k_truth) < Z_MAX * sigma, (k2, k_truth, ACCEL_K2, sigma)

@@ -215,3 +215,41 @@ def test_linear_bias_factor(seed):
     factor = fimu.linear_bias_factor(unit_noise(3), mean, 1, [("temperature", 2), ("time_s", 3)], dev)
     assert np.max(np.abs(factor.unwhitenedError(_values({1: b, 2: k1, 3: k2})))) < 1e-12
     assert_factor_jacobians(factor, {1: rng.normal(size=3), 2: rng.normal(size=3), 3: rng.normal(size=3)})
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_dynamic_pair_factor_offset_channels(seed):
+    """The audit's generic terms: a relative offset varying as k phi(t); zero error at the truth, Jacobians."""
+    rng = np.random.default_rng(seed)
+    R = _random_rot3(rng)
+    t1 = np.arange(0, 2.0, 0.01)
+    x1 = np.cumsum(rng.normal(size=(len(t1), 3)), axis=0) * 0.1
+    signal1 = fimu.Signal(t1, x1)
+    t0 = np.sort(rng.uniform(0.2, 1.8, size=30))
+    phi_a, phi_b = np.sin(3 * t0), t0**2 - 1
+    k_a, k_b, d = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    v0 = signal1.at(t0)[0] @ R.matrix().T + d + np.outer(phi_a, k_a) + np.outer(phi_b, k_b)
+    factor = fimu.dynamic_pair_factor(unit_noise(90), t0, v0, signal1, 1, offset_key=2,
+                                      offset_channels=[(3, phi_a), (4, phi_b)])
+    assert np.max(np.abs(factor.unwhitenedError(_values({1: R, 2: d, 3: k_a, 4: k_b})))) < 1e-10
+    assert_factor_jacobians(factor, {1: _random_rot3(rng), 2: rng.normal(size=3), 3: rng.normal(size=3),
+                                     4: rng.normal(size=3)})
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_pair_factors_with_axis_rotation(seed):
+    """imu1's accelerometer triad rotated by a small rho relative to its gyro triad: ``v0 = R (I + S + [rho]x) v1``
+    exactly (the model is first order in rho by definition); zero error at the truth and Jacobians, with the gain."""
+    rng = np.random.default_rng(seed)
+    R, s6, rho = _random_rot3(rng), 0.01 * rng.normal(size=6), 3e-3 * rng.normal(size=3)
+    v1 = G_GRAVITY * random_unit(rng)
+    v0 = R.matrix() @ (fimu.symmetric_gain(s6) + so3.hat(rho)) @ v1
+    factor = fimu.static_pair_factor(unit_noise(3), v0, v1, 1, gain_key=2, axis_rotation_key=3)
+    assert np.max(np.abs(factor.unwhitenedError(_values({1: R, 2: s6, 3: rho})))) < 1e-12
+    t1 = np.arange(0, 2.0, 0.01)
+    x1 = np.cumsum(rng.normal(size=(len(t1), 3)), axis=0)
+    t0 = np.sort(rng.uniform(0.2, 1.8, size=30))
+    factor = fimu.dynamic_pair_factor(unit_noise(90), t0, rng.normal(size=(30, 3)), fimu.Signal(t1, x1), 1, 2,
+                                      gain_key=3, axis_rotation_key=4)
+    assert_factor_jacobians(factor, {1: _random_rot3(rng), 2: np.array([0.0043]), 3: 0.05 * rng.normal(size=6),
+                                     4: 0.01 * rng.normal(size=3)}, delta=1e-7, atol=1e-4)

@@ -217,16 +217,18 @@ def _gain_jacobian(R: np.ndarray, v1: np.ndarray) -> np.ndarray:
     return out
 
 
-def static_pair_factor(noise, v0, v1, rotation_key, offset_key=None, gain_key=None) -> gtsam.CustomFactor:
-    """Same static vector seen by both IMUs (the patent's residual): ``e = v0 - R (I + S) v1 - d``.
+def static_pair_factor(noise, v0, v1, rotation_key, offset_key=None, gain_key=None,
+                       axis_rotation_key=None) -> gtsam.CustomFactor:
+    """Same static vector seen by both IMUs (the patent's residual): ``e = v0 - R (I + S + [rho]x) v1 - d``.
 
     ``v0``, ``v1``: mean accelerometer outputs of one static pose (m s^-2); ``d`` an optional relative bias
-    (imu0 frame); ``S`` an optional relative gain (see :func:`symmetric_gain`).
-    Right perturbation R Exp(xi): d(-R u)/dxi = R [u]x with u = (I + S) v1.
+    (imu0 frame); ``S`` an optional relative gain (see :func:`symmetric_gain`), ``rho`` an optional axis rotation
+    (see :func:`dynamic_pair_factor`).  Right perturbation R Exp(xi): d(-R u)/dxi = R [u]x with u = G v1.
     """
     return dynamic_pair_factor(noise, np.zeros(1), np.asarray(v0, dtype=float)[None],
                                Signal(np.array([-1.0, 1.0]), np.tile(np.asarray(v1, dtype=float), (2, 1))),
-                               rotation_key, offset_key=offset_key, gain_key=gain_key)
+                               rotation_key, offset_key=offset_key, gain_key=gain_key,
+                               axis_rotation_key=axis_rotation_key)
 
 
 @dataclass(frozen=True)
@@ -249,21 +251,31 @@ class Signal:
 
 def dynamic_pair_factor(noise, t0_s, v0, signal1: Signal, rotation_key, time_offset_key=None,
                         offset_key=None, lever_arm_key=None, w0=None, w_dot0=None,
-                        gain_key=None) -> gtsam.CustomFactor:
+                        gain_key=None, offset_channels=(), axis_rotation_key=None) -> gtsam.CustomFactor:
     """A block of imu0 samples against imu1's signal at the same physical instants.
 
-    ``e_i = v0_i + L_i r - R (I + S) v1(t0_i - dt) - d`` stacked over the block (3n), with
-    ``t_imu0 = t_imu1 + dt``, the optional relative gain ``S`` of imu1 (:func:`symmetric_gain`) and, for
-    accelerometers, the lever-arm term ``L_i = [w_dot]x + [w]x^2`` (imu0 frame, from imu0's gyro).
-    For gyros there is no lever arm: angular rate is the same everywhere on a rigid body.
+    ``e_i = v0_i + L_i r - R (I + S + [rho]x) v1(t0_i - dt) - d - sum_c k_c phi_c,i`` stacked over the block
+    (3n), with ``t_imu0 = t_imu1 + dt``, the optional relative gain ``S`` of imu1 (:func:`symmetric_gain`), the
+    optional small axis rotation ``rho`` (rad) of this sensor's triad relative to the triad that fixes ``R`` (for
+    accelerometers: imu1's accelerometer triad relative to its gyro triad, relative to imu0's; the gyros fix
+    ``R`` while the rig moves, so a rotation between the triads shows in the accelerometer residual only), for
+    accelerometers the lever-arm term ``L_i = [w_dot]x + [w]x^2`` (imu0 frame, from imu0's gyro), and optional
+    ``offset_channels`` ``(key, phi (n,))``: the relative offset varying as ``k_c phi_c`` (``k_c`` a 3-vector;
+    the audit's generic terms).  For gyros there is no lever arm: angular rate is the same everywhere on a rigid
+    body.
     """
     t0_s, v0 = np.asarray(t0_s, dtype=float), np.asarray(v0, dtype=float)
     L = inertial.lever_arm_jacobian(w0, w_dot0) if lever_arm_key is not None else None
-    ordered = [k for k in (rotation_key, time_offset_key, offset_key, lever_arm_key, gain_key) if k is not None]
+    channels = [(key, np.asarray(phi, dtype=float)) for key, phi in offset_channels]
+    ordered = [k for k in (rotation_key, time_offset_key, offset_key, lever_arm_key, gain_key, axis_rotation_key)
+               if k is not None]
+    ordered += [key for key, _ in channels]
 
     def error(this, values, H):
         R = values.atRot3(rotation_key).matrix()
         G = symmetric_gain(values.atVector(gain_key)) if gain_key is not None else np.eye(3)
+        if axis_rotation_key is not None:
+            G = G + so3.hat(values.atVector(axis_rotation_key))
         dt = values.atVector(time_offset_key)[0] if time_offset_key is not None else 0.0
         v1, slope1 = signal1.at(t0_s - dt)
         u1, u_slope = v1 @ G.T, slope1 @ G.T
@@ -272,12 +284,18 @@ def dynamic_pair_factor(noise, t0_s, v0, signal1: Signal, rotation_key, time_off
             e = e - values.atVector(offset_key)
         if lever_arm_key is not None:
             e = e + np.einsum("nij,j->ni", L, values.atVector(lever_arm_key))
+        for key, phi in channels:
+            e = e - np.outer(phi, values.atVector(key))
         if H is not None:
             _fill(H, [(rotation_key, (R @ so3.hat(u1)).reshape(-1, 3)),
                       (time_offset_key, (u_slope @ R.T).reshape(-1, 1)),
                       (offset_key, np.tile(-np.eye(3), (len(v0), 1))),
                       (lever_arm_key, L.reshape(-1, 3) if L is not None else None),
-                      (gain_key, _gain_jacobian(R, v1).reshape(-1, 6) if gain_key is not None else None)])
+                      (gain_key, _gain_jacobian(R, v1).reshape(-1, 6) if gain_key is not None else None),
+                      # d(-R [rho]x v1)/drho = R [v1]x
+                      (axis_rotation_key, (R @ so3.hat(v1)).reshape(-1, 3) if axis_rotation_key is not None
+                       else None)]
+                  + [(key, -np.kron(phi[:, None], np.eye(3))) for key, phi in channels])
         return e.reshape(-1)
 
     return gtsam.CustomFactor(noise, ordered, error)

@@ -29,6 +29,7 @@ from selfcal.core.stats import correlation_inflation
 ROTATION, TIME_OFFSET, LEVER_ARM = gtsam.symbol("R", 0), gtsam.symbol("t", 0), gtsam.symbol("l", 0)
 ACCEL_OFFSET, GYRO_OFFSET = gtsam.symbol("o", 0), gtsam.symbol("o", 1)
 ACCEL_GAIN, GYRO_GAIN = gtsam.symbol("s", 0), gtsam.symbol("s", 1)
+ACCEL_AXIS_ROTATION = gtsam.symbol("s", 2)
 GROUPS = ("static", "gyro", "accel")
 
 
@@ -64,6 +65,9 @@ class PairModel:
     gyro_offset: bool = True
     accel_gain: bool = False  # imu1's accelerometer scale/non-orthogonality relative to imu0 (symmetric, 6)
     gyro_gain: bool = False
+    # imu1's accelerometer triad rotated relative to its gyro triad (relative to imu0's), 3; needs motion: while
+    # the rig stands still only the accelerometers see the rotation R and it absorbs this one
+    accel_axis_rotation: bool = False
 
 
 @dataclass
@@ -103,15 +107,20 @@ def _blocks(n, t_s, block_s):
     return [np.arange(a, b) for a, b in zip(edges[:-1], edges[1:]) if b - a >= 3]
 
 
-def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel, scale: dict, huber_k):
+def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairModel, scale: dict, huber_k,
+           channels: dict[str, list[tuple[int, np.ndarray]]] | None = None):
+    """The pair graph; ``channels`` (group ``gyro``/``accel`` -> [(key, phi over the dynamic samples)]) adds
+    relative offsets varying as ``k phi`` (the audit's generic terms)."""
+    channels = channels or {}
     graph = gtsam.NonlinearFactorGraph()
     groups = []
     accel_offset = ACCEL_OFFSET if model.accel_offset else None
     accel_gain = ACCEL_GAIN if model.accel_gain else None
     gyro_gain = GYRO_GAIN if model.gyro_gain else None
+    accel_rotation = ACCEL_AXIS_ROTATION if model.accel_axis_rotation else None
     for pair in static:
         graph.add(fimu.static_pair_factor(robust(pair.sigma * scale["static"], huber_k), pair.accel0, pair.accel1,
-                                          ROTATION, accel_offset, accel_gain))
+                                          ROTATION, accel_offset, accel_gain, accel_rotation))
         groups.append("static")
     if dynamic is not None:
         dt_key = TIME_OFFSET if model.time_offset else None
@@ -120,13 +129,14 @@ def _build(static: list[StaticPair], dynamic: DynamicData | None, model: PairMod
             graph.add(fimu.dynamic_pair_factor(
                 robust(np.full(3 * n, dynamic.gyro_sigma * scale["gyro"]), huber_k), dynamic.t0_s[idx],
                 dynamic.gyro0[idx], dynamic.gyro1, ROTATION, dt_key, GYRO_OFFSET if model.gyro_offset else None,
-                gain_key=gyro_gain))
+                gain_key=gyro_gain, offset_channels=[(k, phi[idx]) for k, phi in channels.get("gyro", ())]))
             groups.append("gyro")
             graph.add(fimu.dynamic_pair_factor(
                 robust(np.full(3 * n, dynamic.accel_sigma * scale["accel"]), huber_k), dynamic.t0_s[idx],
                 dynamic.accel0[idx], dynamic.accel1, ROTATION, dt_key, accel_offset,
                 LEVER_ARM if model.lever_arm else None, dynamic.gyro0[idx], dynamic.gyro_rate_dot0[idx],
-                gain_key=accel_gain))
+                gain_key=accel_gain, offset_channels=[(k, phi[idx]) for k, phi in channels.get("accel", ())],
+                axis_rotation_key=accel_rotation))
             groups.append("accel")
     return graph, groups
 
@@ -169,7 +179,8 @@ def pair_values(R_imu0_imu1, model: PairModel, dt_s=0.0, lever_arm_m=None, accel
                                   (model.lever_arm, LEVER_ARM, lever_arm_m, 3),
                                   (model.accel_offset, ACCEL_OFFSET, accel_offset, 3),
                                   (model.gyro_offset, GYRO_OFFSET, gyro_offset, 3),
-                                  (model.accel_gain, ACCEL_GAIN, None, 6), (model.gyro_gain, GYRO_GAIN, None, 6)):
+                                  (model.accel_gain, ACCEL_GAIN, None, 6), (model.gyro_gain, GYRO_GAIN, None, 6),
+                                  (model.accel_axis_rotation, ACCEL_AXIS_ROTATION, None, 3)):
         if flag:
             values.insert(key, np.zeros(dim) if value is None else np.asarray(value, dtype=float))
     return values
