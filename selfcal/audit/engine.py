@@ -334,7 +334,7 @@ class _Search:
         self.findings: list[dict] = []
         self.history: list[dict] = []
         self.rejected: dict[str, dict] = {}
-        self.notes: list[str] = []
+        self.notes: list[str] = list(getattr(system, "notes", ()))  # the adapter's own (scenes left out, ...)
         self.offers_terms = hasattr(system, "term_coordinates")
 
     # --- the search --------------------------------------------------------------------------------------------
@@ -348,12 +348,13 @@ class _Search:
                 catalog = [c for c in self.system.candidates() if c not in self.effects and c not in banned]
                 if not catalog or not self.step(catalog, len(catalog), "catalog"):
                     break
-            if not self.offers_terms:
-                self.notes.append(f"{self.system.name}: no generic term library in this system's graph yet; the "
-                                  "remaining structure is reported, not modelled")
-                break
             outdone = None
-            while len(self.findings) < max_findings and outdone is None:
+            if not self.offers_terms:
+                note = (f"{self.system.name}: no generic term library in this system's graph yet; the remaining "
+                        "structure is reported, not modelled")
+                if note not in self.notes:
+                    self.notes.append(note)
+            while self.offers_terms and len(self.findings) < max_findings and outdone is None:
                 generic = self.generic_candidates()
                 if not generic:
                     break
@@ -361,6 +362,8 @@ class _Search:
                 if outdone is False:
                     break
             if not isinstance(outdone, Candidate):
+                outdone = self.redundant_catalog_finding()
+            if outdone is None:
                 break
             banned.add(outdone)
             self.restart()
@@ -526,6 +529,28 @@ class _Search:
                             "delta_bic_swapped": delta_bic, "p_value_on_top_of_term": on_top.p_value,
                             "outdone_by": {"driver": term.term.driver, "form": term.term.form,
                                            "meaning": term.meaning}}))
+            return cand
+        return None
+
+    def redundant_catalog_finding(self) -> Candidate | None:
+        """A catalog finding the final model no longer needs, rejected as ``outdone`` by the later findings.
+
+        Accepted one at a time, an effect found first may only have stood in for one found after it (a radius
+        error taking part of a range offset): refitted without it, the final model's other effects leave it
+        insignificant at the catalog's level.  The search then starts again without it (backward elimination).
+        """
+        found = [c for c in self.effects if c not in self.base_fit.effects]
+        level = self.alpha / max(len(self.system.candidates()), 1)
+        for cand in [c for c in found[:-1] if c.term is None]:
+            others = self.system.fit(tuple(c for c in self.effects if c != cand))
+            on_top = self.score(cand, others)
+            if on_top.p_value < level:
+                continue
+            finding = next(f for f in self.findings if f["effect"] == cand.effect and f["target"] == cand.label)
+            later = [f"{c.effect}@{c.label}" for c in found[found.index(cand) + 1:]]
+            self.reject(Trial(cand, finding["evidence"]["statistic"], finding["evidence"]["p_value"], 0),
+                        Rejection("outdone", {"p_value_on_top_of_the_rest": on_top.p_value,
+                                              "outdone_by": {"findings": later}}))
             return cand
         return None
 

@@ -442,7 +442,44 @@ def import_adis16405_static(npz_file) -> Recording:
                                                             accel * STANDARD_GRAVITY_M_S2, meta=meta)})
 
 
+SPHERECALIB_QC_SPEC = {  # docs/qc_specs/spherecalib_lidar.yaml: the detection that finds the ball in these rooms
+    "spheres": {"radius_bounds_m": [0.2, 0.45], "ransac_threshold_m": 0.025, "evaluation_gate_m": 0.04,
+                "min_points": 30},
+    "planes": {"threshold_m": 0.03, "min_points": 1000, "remove_for_detection": 4, "evaluate": 1},
+    "detection": {"voxel_m": 0, "normal_radius_m": 0.2, "dbscan_eps_m": 0.15, "dbscan_min_points": 10},
+    "seed": 0}
+
+
+def import_spherecalib_lidar(src_dir) -> Recording:
+    """The SphereCalib LiDAR scans (an inflatable ball of about 0.3 m radius in 8 scenes) as sensor ``lidar0``.
+
+    Parameters
+    ----------
+    src_dir : str or Path
+        Folder holding ``L1_S1.xyz.gz`` ... (gzip of ASCII x y z in m, the scanner's frame).
+
+    Returns
+    -------
+    Recording
+        ``lidar0``: one row per scene, the upstream files copied unchanged as ``<timestamp>.xyz.gz``.  The scans
+        carry no time: the timestamps (1 s apart) only order the scenes (``timestamps_are_scene_order``).
+    """
+    src = _require_dir(src_dir)
+    files = sorted(src.glob("L1_S*.xyz.gz"), key=lambda f: int(f.name[4:].split(".")[0]))
+    if not files:
+        raise RecordingError(f"{src}: no L1_S<i>.xyz.gz scan files")
+    t_ns = np.arange(1, len(files) + 1, dtype=np.int64) * 1_000_000_000
+    meta = {"sensor_type": "lidar", "sphere_radius_m": 0.3, "file_pattern": "{timestamp}.xyz.gz",
+            "timestamps_are_scene_order": True, "qc_spec": SPHERECALIB_QC_SPEC,
+            "source": f"spherecalib_lidar_2cam_sphere/{files[0].name} .. {files[-1].name}",
+            "scenes": [f.name for f in files]}
+    sensor = SensorData("lidar0", t_ns, {}, {}, meta)
+    return Recording(path=None, sensors={"lidar0": sensor},
+                     payloads={f"lidar0/{t}.xyz.gz": f.read_bytes() for t, f in zip(t_ns, files)})
+
+
 IMPORTERS = {
+    "spherecalib-lidar": import_spherecalib_lidar,
     "adis16405-static": import_adis16405_static,
     "sunsided-mpu6050": import_sunsided_mpu6050,
     "imu-tk-xsens": import_imu_tk_xsens,

@@ -79,6 +79,8 @@ class ImuData:
 class Recording:
     path: Path | None
     sensors: dict[str, SensorData]
+    payloads: dict[str, bytes] = field(default_factory=dict)  # files beside the CSVs ("lidar0/<t>.xyz.gz"), by
+    # relative path: what an importer writes with the recording (a read recording loads them from the folders)
 
     def imu_names(self) -> list[str]:
         """Names of the sensors that carry the six IMU columns, sorted."""
@@ -392,7 +394,7 @@ def write_recording(recording: Recording, path, truth: dict | None = None, overw
             target = tmp / rel
             target.parent.mkdir(exist_ok=True)
             target.write_text(text, encoding="utf-8", newline="\n")
-        for rel, data in (extra_files or {}).items():
+        for rel, data in {**recording.payloads, **(extra_files or {})}.items():
             target = tmp / rel
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(data)

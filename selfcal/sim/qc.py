@@ -109,3 +109,70 @@ class PlateWithSpheres:
         if scale_error:
             out *= 1.0 + scale_error
         return out, labels
+
+
+@dataclass
+class LidarSphereScenes:
+    """One sphere seen by a scanning LiDAR (origin = its range zero point) in several scenes at different ranges.
+
+    Rays on an azimuth x elevation grid (``azimuth_step_deg`` x ``ring_step_deg``) are cast at the sphere; a
+    return's range is the true one plus ``range_offset_m`` (the catalog's ``range_offset``), white noise
+    ``range_noise_m`` and, to hide effects the audit's catalog does not list:
+
+    * ``radius_slope``: the sphere looks bigger or smaller with range, ``R(d) = R + slope (d - d_mid)``
+      (dimensionless: m of radius per m of range; beam-footprint growth mixing edge returns with background);
+    * ``incidence_error_m``: a range error growing with the incidence angle ``i``,
+      ``a (i / 90 deg)^2`` (footprint elongation on a surface seen at a slant).
+
+    ``scene_radius_sigma_m``: each scene's sphere radius off by its own N(0, s^2) (a target that is not a
+    reference sphere, a different cap seen each time).  Truth is kept as attributes.
+    """
+
+    ranges_m: tuple[float, ...] = (2.5, 1.8, 3.2, 2.2, 3.5, 2.0, 2.7, 3.0)  # in scan order: not sorted, so that
+    # range and time are not the same driver
+    radius_m: float = 0.3
+    range_noise_m: float = 0.005
+    range_offset_m: float = 0.0
+    radius_slope: float = 0.0
+    incidence_error_m: float = 0.0
+    scene_radius_sigma_m: float = 0.0
+    azimuth_step_deg: float = 0.4
+    ring_step_deg: float = 1.0
+
+    def centres_m(self, seed: int) -> np.ndarray:
+        """Scene centres: the given ranges, random azimuth (+-60 deg) and elevation (+-10 deg)."""
+        rng = np.random.default_rng([seed, 1])
+        az = np.radians(rng.uniform(-60, 60, len(self.ranges_m)))
+        el = np.radians(rng.uniform(-10, 10, len(self.ranges_m)))
+        u = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        return u * np.asarray(self.ranges_m, dtype=float)[:, None]
+
+    def scene_radii_m(self, seed: int) -> np.ndarray:
+        rng = np.random.default_rng([seed, 2])
+        d = np.asarray(self.ranges_m, dtype=float)
+        return (self.radius_m + self.radius_slope * (d - 0.5 * (d.min() + d.max()))
+                + self.scene_radius_sigma_m * rng.normal(size=len(d)))
+
+    def scenes(self, seed: int) -> list[np.ndarray]:
+        """Returns (N_s, 3) per scene, sensor frame, m."""
+        rng = np.random.default_rng([seed, 3])
+        out = []
+        for c, radius in zip(self.centres_m(seed), self.scene_radii_m(seed)):
+            d = np.linalg.norm(c)
+            half = np.arcsin(min(radius / d, 1.0)) + np.radians(self.ring_step_deg)
+            az0, el0 = np.arctan2(c[1], c[0]), np.arcsin(c[2] / d)
+            az = np.arange(az0 - half / np.cos(el0), az0 + half / np.cos(el0), np.radians(self.azimuth_step_deg))
+            el = np.arange(np.floor((el0 - half) / np.radians(self.ring_step_deg)),
+                           np.ceil((el0 + half) / np.radians(self.ring_step_deg)) + 1) * np.radians(self.ring_step_deg)
+            A, E = np.meshgrid(az, el)
+            u = np.column_stack([(np.cos(E) * np.cos(A)).ravel(), (np.cos(E) * np.sin(A)).ravel(), np.sin(E).ravel()])
+            uc = u @ c
+            disc = uc**2 - (d**2 - radius**2)
+            u, uc, disc = u[disc > 0], uc[disc > 0], disc[disc > 0]
+            rho = uc - np.sqrt(disc)
+            normal = (u * rho[:, None] - c) / radius
+            incidence = np.arccos(np.clip(-np.einsum("ij,ij->i", normal, u), -1.0, 1.0))
+            rho = (rho + self.range_offset_m + self.incidence_error_m * (incidence / (0.5 * np.pi)) ** 2
+                   + self.range_noise_m * rng.normal(size=len(rho)))
+            out.append(u * rho[:, None])
+        return out
