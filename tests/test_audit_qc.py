@@ -10,8 +10,9 @@ look-alike, and nulls (with and without a scene-to-scene radius scatter).  Toler
 """
 from __future__ import annotations
 
+import gzip
+import hashlib
 import json
-import shutil
 from pathlib import Path
 
 import gtsam
@@ -28,6 +29,7 @@ from selfcal.graphs import qc as gq
 from selfcal.sim.qc import LidarSphereScenes
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "spherecalib_lidar_2cam_sphere"
+SHIPPED = Path(__file__).resolve().parents[1] / "data" / "spherecalib_lidar"
 NOMINAL_M = 0.3
 
 
@@ -173,3 +175,14 @@ def test_real_lidar_scans_import_and_audit(tmp_path, capsys):
     assert contract["system"] == "qc" and contract["base_model"] == "sphere"
     assert set(contract["remaining"]) == {"lidar0/sphere"}
     assert not any("left out" in n for n in contract.get("notes", []))
+
+
+def test_shipped_recording_is_the_upstream_scans_and_audits(tmp_path):
+    """data/spherecalib_lidar (in every clone): the upstream files byte for byte (sha256 in SOURCE.md), audited."""
+    first = (SHIPPED / "lidar0" / "1000000000.xyz.gz").read_bytes()
+    assert hashlib.sha256(gzip.decompress(first)).hexdigest() == \
+        "263ce8357b9f0360d208527a23ba557fb0b14d5d2d389c07007bd93d99fac06a"  # L1_S1.xyz, SOURCE.md
+    out = tmp_path / "audit.json"
+    assert main(["audit", str(SHIPPED), "--system", "qc", "--json", str(out)]) in (0, None)
+    contract = json.loads(out.read_text())
+    assert contract["system"] == "qc" and "lidar0/sphere" in contract["remaining"]
