@@ -53,3 +53,20 @@ def test_hidden_temperature_scale_is_named_with_its_size(tmp_path):
     f = out["findings"][0]
     assert abs(f["estimate"]["k_per_degC"] - 5e-5) < 3 * f["std"]["k_per_degC"]
     assert "eccentricity" in out["diagnostics"]
+
+
+@pytest.mark.parametrize("seed", [14, 15])
+def test_compressive_diode_response_is_unlisted_quadratic_in_signal(seed):
+    """A diode chain that compresses: ``s - c s^2 / adc_max`` with c = 5 % loss at full scale; no catalog entry.
+    The audit must name it by the driver ``signal`` (the predicted counts) with the quadratic coefficient
+    ``-c / adc_max`` (first order in c; the linear part is the illumination's, left free).  Not eccentricity,
+    PRNU or a temperature scale."""
+    c = 0.05
+    sc = EncoderScenario(seed=seed, response_compression=c, **TINY)
+    _, out = audit(sc)
+    assert [(f["effect"], f.get("driver")) for f in out["findings"]] == [("unlisted", "signal")], out["findings"]
+    f = out["findings"][0]
+    assert f["form"] in ("poly2", "poly3")
+    quadratic, sigma = f["estimate"]["coefficients"][1][0], f["std"]["coefficients"][1][0]
+    assert abs(quadratic - (-c / sc.adc_max)) < 3 * sigma, (quadratic, sigma, -c / sc.adc_max)
+    assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]

@@ -56,3 +56,42 @@ def test_hidden_speed_log_scale_is_named_and_sized():
     assert [f["effect"] for f in result["findings"]] == ["speed_log_scale"]
     finding = result["findings"][0]
     assert abs(finding["estimate"]["scale"] - 0.10) < 3 * finding["std"]["scale"], finding
+
+
+# --- effects no catalog lists (the generic term library) ----------------------------------------------------
+
+G = 9.80665
+
+
+def test_accelerometer_bias_following_the_heading_is_unlisted_harmonic_in_heading():
+    """A body-frame accelerometer bias a (cos psi, sin psi, 0) (a heading-locked disturbance), a = 0.1 m/s^2, in
+    5 min of turns.  Turned into the level frame by the heading it reads a (cos 2psi, sin 2psi) / g: the second
+    harmonic of the heading, amplitude a / g in each tilt component (the graph's heading starts at 0, which only
+    shifts the phase).  No catalog entry fits it; it must not be named as one."""
+    a = 0.1
+    result = audit("turning", 300.0, lever_arm_m=(0.0, 0.0, 0.0),
+                   accel_bias_of=lambda t, e: a * np.column_stack([np.cos(e[:, 2]), np.sin(e[:, 2]), 0 * t]))
+    assert [(f["effect"], f.get("driver"), f.get("form")) for f in result["findings"]] == [
+        ("unlisted", "heading", "harmonic")], result["findings"]
+    found = result["findings"][0]
+    assert found["estimate"]["order"] == 2.0
+    amplitude, sigma = np.array(found["estimate"]["amplitude"]), np.array(found["std"]["amplitude"])
+    assert np.all(np.abs(amplitude - a / G) < 3 * sigma), (amplitude, sigma, a / G)
+
+
+def test_accelerometer_bias_quadratic_in_roll_is_unlisted_not_a_gyro_scale():
+    """y accelerometer bias c roll^2 (c = 5 m/s^2 per rad^2: a cross-axis nonlinearity), heave voyage.  A gyro
+    scale error also tilts the level with the roll swing, but linearly: the look-alike must not be named.  The
+    term's quadratic coefficient, as a horizontal vector (the level frame is turned by the start heading), has
+    the size c / g."""
+    c = 5.0
+    result = audit("heave", 120.0, lever_arm_m=(0.0, 0.0, 0.0),
+                   accel_bias_of=lambda t, e: np.column_stack([0 * t, c * e[:, 0] ** 2, 0 * t]))
+    assert [(f["effect"], f.get("driver")) for f in result["findings"]] == [("unlisted", "roll")], result["findings"]
+    found = result["findings"][0]
+    assert found["form"] == "poly2"
+    quadratic = np.array(found["estimate"]["coefficients"][1])
+    sigma = np.array(found["std"]["coefficients"][1])
+    size = np.linalg.norm(quadratic)
+    size_sigma = np.sqrt(np.sum((quadratic / size * sigma) ** 2))  # first order, components' sigmas
+    assert abs(size - c / G) < 3 * size_sigma, (size, size_sigma, c / G)

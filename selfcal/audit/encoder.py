@@ -14,7 +14,10 @@ from frame to frame is already in the base).  Catalog (only effects the data can
                        in ``diagnostics`` as unobservable instead.
 
 Not in the catalog: disk wobble (2/rev: a graduation-error pattern again), array tilt (in the base as ``q``),
-light intensity drift (in the base).  Residual family: ``signal`` (counts) of each array, one row per diode
+light intensity drift (in the base).  Generic terms (:mod:`selfcal.audit.terms`): a signal offset ``k phi(x)``
+per diode sample inside each frame factor, in the drivers ``signal`` (counts: the base fit's predicted signal, a
+diode response that is not linear), ``diode`` (index), ``position`` (disk angle, rad: harmonics offered; the free
+edges absorb what is a graduation error) and ``temperature`` where there is one.  Residual family: ``signal`` (counts) of each array, one row per diode
 sample; coordinates: diode index, position, temperature.  Folds interleave the positions (even/odd), so each
 half still covers the whole disk; a held-out frame is fitted for its own position and light profile with the
 trained parameters held fixed.
@@ -26,7 +29,10 @@ import math
 import gtsam
 import numpy as np
 
+from selfcal.audit import terms as library
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.terms import Coordinate
+from selfcal.core.solve import joint_covariance
 from selfcal.graphs.encoder import calibration as ge
 
 MEANINGS = {
@@ -61,6 +67,57 @@ class EncoderAudit:
                                             obs.information_fraction, "meaning": obs.reason}
         temps = [a.temperature_degC for a in problem.arrays if a.temperature_degC is not None]
         self.temperature_varies = bool(temps) and float(np.ptp(np.concatenate(temps))) > 0.5
+        self._drivers, self._rows = self._driver_values(base[2], base[3], base[0])
+        self._term_keys: dict[library.Term, list[int]] = {}
+
+    # -- the generic term library ----------------------------------------------------------------------------
+    def _driver_values(self, graph, layout, values):
+        """Per array, every driver over its rows (frames of the whole run in order, n diodes each), and each
+        frame's rows.  ``signal`` is what the base fit predicts (the measured one carries the noise)."""
+        res = ge.residuals(graph, values, len(layout.frames))
+        drivers, rows, count = {}, {}, {}
+        for i, (k, J) in enumerate(layout.frames):
+            arr = self.problem.arrays[k]
+            d = drivers.setdefault(k, {"signal": [], "diode": [], "position": [], "temperature": []})
+            d["signal"].append(res[i] + arr.frames[J])
+            d["diode"].append(np.arange(arr.n, dtype=float))
+            d["position"].append(np.full(arr.n, self.problem.beta0[J]))
+            if arr.temperature_degC is not None:
+                d["temperature"].append(np.full(arr.n, arr.temperature_degC[J]))
+            start = count.get(k, 0)
+            rows[(k, J)] = slice(start, start + arr.n)
+            count[k] = start + arr.n
+        return ({k: {n: np.concatenate(v) for n, v in d.items() if v} for k, d in drivers.items()}, rows)
+
+    def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        units = {"signal": "counts", "diode": "", "position": "rad", "temperature": "degC"}
+        kinds = {"signal": "state", "diode": "state", "position": "angle", "temperature": "channel"}
+        return {(self.problem.arrays[k].name, "signal"): [Coordinate(n, v, units[n], kinds[n]) for n, v in d.items()]
+                for k, d in self._drivers.items()}
+
+    def catalog_term(self, candidate: Candidate) -> None:
+        return None  # no catalog effect of the encoder is a signal offset in one driver
+
+    def _keys_of(self, term: library.Term) -> list[int]:
+        if term not in self._term_keys:
+            start = sum(len(k) for k in self._term_keys.values())
+            self._term_keys[term] = [gtsam.symbol("u", start + j) for j in range(term.dof())]
+        return self._term_keys[term]
+
+    def _array(self, candidate: Candidate) -> int:
+        return [a.name for a in self.problem.arrays].index(candidate.sensor)
+
+    def _term_columns(self, effects) -> dict[tuple[int, int], list[tuple[int, np.ndarray]]]:
+        out: dict[tuple[int, int], list] = {}
+        for c in effects:
+            if c.term is None:
+                continue
+            k = self._array(c)
+            columns = c.term.columns(self._drivers[k])
+            for (kk, J), rows in self._rows.items():
+                if kk == k:
+                    out.setdefault((k, J), []).extend(zip(self._keys_of(c.term), columns[rows].T))
+        return out
 
     # -- candidates and models -------------------------------------------------------------------------------
     def candidates(self) -> list[Candidate]:
@@ -102,10 +159,13 @@ class EncoderAudit:
                 values.erase(key)
         return values
 
-    def _solve(self, frames, model, fold):
+    def _solve(self, frames, model, fold, effects=()):
         edges = np.asarray(getattr(self, "edges", self.start.get("edges", self.problem.code.nominal_edge_angles())))
         values = self._initial(model, frames)
-        graph, layout = ge.build_graph(self.problem, model, values, edges, frames)
+        columns = self._term_columns(effects) if effects else {}
+        for key in {key for group in columns.values() for key, _ in group}:
+            values.insert(key, np.zeros(1))
+        graph, layout = ge.build_graph(self.problem, model, values, edges, frames, term_columns=columns)
         ge.insert_edges(values, layout.edge_vars, edges)
         for key in list(values.keys()):
             sym = gtsam.Symbol(key)
@@ -117,17 +177,31 @@ class EncoderAudit:
     def fit(self, effects, fold=None) -> Fit:
         model = self._model(effects)
         frames = self._frames(fold)
-        values, edges, graph, layout = self._solve(frames, model, fold)
+        values, edges, graph, layout = self._solve(frames, model, fold, effects)
         return Fit(tuple(effects), graph, values, self._families(graph, layout, values),
                    {"model": model, "fold": fold, "frames": frames, "edges": edges, "layout": layout})
 
     def extend(self, fit: Fit, candidate: Candidate):
-        model = self._model(fit.effects + (candidate,))
+        graph, values, groups = self._extended(fit, [candidate])
+        return graph, values, groups[0]
+
+    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+        """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
+        return self._extended(fit, candidates)
+
+    def _extended(self, fit: Fit, candidates):
+        effects = fit.effects + tuple(candidates)
+        model = self._model(effects)
         values = gtsam.Values(fit.values)
-        key, dim = self._key(candidate)
-        values.insert(key, np.zeros(dim))
-        graph, _ = ge.build_graph(self.problem, model, values, fit.context["edges"], fit.context["frames"])
-        return graph, values, [(key, np.arange(dim))]
+        groups = []
+        for cand in candidates:
+            keys = [self._key(cand)] if cand.term is None else [(k, 1) for k in self._keys_of(cand.term)]
+            for key, dim in keys:
+                values.insert(key, np.zeros(dim))
+            groups.append([(key, np.arange(dim)) for key, dim in keys])
+        graph, _ = ge.build_graph(self.problem, model, values, fit.context["edges"], fit.context["frames"],
+                                  term_columns=self._term_columns(effects))
+        return graph, values, groups
 
     def _key(self, candidate):
         k = [a.name for a in self.problem.arrays].index(candidate.sensor)
@@ -169,7 +243,8 @@ class EncoderAudit:
                               ge._start_illumination(self.problem.arrays[k].frames[J], 0.0, 2))
         fixed = ge.EncoderModel(model.geometry_free, model.eccentricity, model.temperature_scale, model.prnu,
                                 edges_fixed=True)
-        graph, layout = ge.build_graph(self.problem, fixed, values, fit.context["edges"], frames)
+        graph, layout = ge.build_graph(self.problem, fixed, values, fit.context["edges"], frames,
+                                       term_columns=self._term_columns(fit.effects))
         # only the per-frame unknowns move: pin every trained variable with a tight prior
         for key in fit.values.keys():
             v = fit.values.atVector(key)
@@ -182,6 +257,15 @@ class EncoderAudit:
         return self._families(graph, layout, values)
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
+        if candidate.term is not None:
+            keys = self._keys_of(candidate.term)
+            joint = joint_covariance(fit.graph, fit.values, keys, "the audited term") * variance_factor(fit)
+            units = {"signal": "counts", "diode": "", "position": "rad", "temperature": "degC"}
+            estimate, std = library.describe(candidate.term, np.array([fit.values.atVector(k) for k in keys]), joint,
+                                             self._drivers[self._array(candidate)], "counts",
+                                             units[candidate.term.driver])
+            estimate["target"] = f"{candidate.sensor}/signal"
+            return estimate, std
         key, dim = self._key(candidate)
         scale = math.sqrt(variance_factor(fit))
         marginals = gtsam.Marginals(fit.graph, fit.values)

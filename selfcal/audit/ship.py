@@ -17,7 +17,13 @@ tilt, known accelerations (speed log, yaw rate) removed, the accelerometer taken
 
 Residual family ``tilt`` (rad, 2 per keyframe: the world-frame horizontal part of the corrected force
 direction) with coordinates time, angular acceleration, surge acceleration, centripetal acceleration and the
-rotation since the last keyframe.  Folds split the voyage in two halves; the held-out half is solved with the
+rotation since the last keyframe.
+
+Generic terms (:mod:`selfcal.audit.terms`): a tilt offset ``k phi(x)`` (``k`` two components, rad per unit)
+inside each keyframe's tilt factor, in the drivers ``time``, ``roll``, ``pitch``, ``heading`` (rad, the gyro-carried
+heading from the start: never measured absolutely), ``speed`` (the log's, when there is one),
+``angular_acceleration``, ``surge_acceleration`` and ``centripetal_acceleration``.  Roll, pitch and heading are
+those of the first full fit the library sees, fixed for the recording.  Folds split the voyage in two halves; the held-out half is solved with the
 constants of the other half held fixed.
 """
 from __future__ import annotations
@@ -27,11 +33,13 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
-from selfcal.core import stats
+from selfcal.audit import terms as library
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.terms import Coordinate
+from selfcal.core import stats
 from selfcal.graphs.ship import (GYRO_SCALE_KEY, LEVER_ARM_KEY, R_KEY, RELATIVE_TOLERANCE, SPEED_SCALE_KEY,
                                  ShipGraph, ShipGraphOptions, ShipInputs, keyframes_from_inputs)
-from selfcal.core.solve import marginal_covariances, optimize
+from selfcal.core.solve import joint_covariance, marginal_covariances, optimize
 
 MEANINGS = {"lever_arm": "the accelerometer is displaced from the centre of rotation: the hull's angular "
                          "acceleration and rate tilt the force it measures",
@@ -41,6 +49,9 @@ MEANINGS = {"lever_arm": "the accelerometer is displaced from the centre of rota
                           "under-rotates the waves and turns, against the accelerometer's tilt"}
 KEYS = {"lever_arm": (LEVER_ARM_KEY, 3), "speed_log_scale": (SPEED_SCALE_KEY, 1), "gyro_scale": (GYRO_SCALE_KEY, 3)}
 ROTATION_COORDINATE = "rotation since last keyframe"  # rad: what a scale error multiplies
+DRIVER_UNITS = {"time": "s", "roll": "rad", "pitch": "rad", "heading": "rad", "speed": "m s^-1",
+                "angular_acceleration": "rad s^-2", "surge_acceleration": "m s^-2",
+                "centripetal_acceleration": "m s^-2"}
 AUDIT_KEYFRAME_S = 0.5  # coarser than smoothing: the audit refits the voyage a dozen times
 
 
@@ -58,6 +69,8 @@ class ShipAudit:
         half = 0.5 * (t[0] + t[-1])
         self._halves = [np.flatnonzero(t < half), np.flatnonzero(t >= half)]
         self.has_speed = inputs.speed_m_s is not None
+        self._drivers: dict[str, np.ndarray] | None = None
+        self._term_keys: dict[library.Term, list[int]] = {}
 
     def candidates(self) -> list[Candidate]:
         out = [Candidate("lever_arm", self.sensor, MEANINGS["lever_arm"], "tilt", "angular acceleration"),
@@ -85,14 +98,23 @@ class ShipAudit:
         return self.frames if part is None else [self.frames[i] for i in self._halves[part]]
 
     def _build(self, effects, part, fixed=None):
-        """(graph, start values, the builder) of the voyage (part None) or one half."""
+        """(graph, start values, the builder) of the voyage (part None) or one half; generic terms as tilt offsets,
+        fitted (keys at zero) or, with ``fixed``, known."""
         builder = ShipGraph(self._options(effects, fixed), self.inputs.gravity_m_s2, self.inputs.gyro_noise_density,
                             self.inputs.gyro_random_walk)
+        rows = slice(None) if part is None else self._halves[part]
+        columns = self._term_columns(effects)
+        if fixed is None:
+            builder.term_columns = [(key, phi[rows]) for key, phi in columns]
+        else:
+            builder.known_terms = [(fixed.atVector(key), phi[rows]) for key, phi in columns]
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for frame in self._frames(part):
             g, v = builder.add(frame, values if builder.k >= 0 else None, propagate=False)
             graph.push_back(g)
             values.insert(v)
+        for key, _ in builder.term_columns:
+            values.insert(key, np.zeros(2))
         return graph, values, builder
 
     def fit(self, effects, fold=None) -> Fit:
@@ -101,11 +123,23 @@ class ShipAudit:
         return Fit(tuple(effects), graph, values, self._families(values, builder, fold), {"fold": fold})
 
     def extend(self, fit: Fit, candidate: Candidate):
-        graph, _, _ = self._build(fit.effects + (candidate,), fit.context["fold"])
+        graph, values, groups = self._extended(fit, [candidate])
+        return graph, values, groups[0]
+
+    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+        """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
+        return self._extended(fit, candidates)
+
+    def _extended(self, fit: Fit, candidates):
+        graph, start, _ = self._build(fit.effects + tuple(candidates), fit.context["fold"])
         values = gtsam.Values(fit.values)
-        key, dim = KEYS[candidate.effect]
-        values.insert(key, np.zeros(dim))
-        return graph, values, [(key, np.arange(dim))]
+        groups = []
+        for cand in candidates:
+            keys = [KEYS[cand.effect]] if cand.term is None else [(k, 2) for k in self._keys_of(cand.term)]
+            for key, dim in keys:
+                values.insert(key, start.atVector(key) if start.exists(key) else np.zeros(dim))
+            groups.append([(key, np.arange(dim)) for key, dim in keys])
+        return graph, values, groups
 
     def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
         other = 1 - fold
@@ -114,7 +148,7 @@ class ShipAudit:
 
     def _families(self, values, builder: ShipGraph, part) -> list[ResidualFamily]:
         frames = self._frames(part)
-        e = np.array([builder.tilt_factor(frame, R_KEY(j)).unwhitenedError(values) for j, frame in enumerate(frames)])
+        e = np.array([builder.tilt_factor(frame, R_KEY(j), j).unwhitenedError(values) for j, frame in enumerate(frames)])
         sigma = np.array([frame.tilt_sigma_rad for frame in frames])
         coords = {"time_s": np.array([f.t_s for f in frames]),
                   "angular acceleration": np.array([np.linalg.norm(f.A_S) for f in frames]),
@@ -123,6 +157,45 @@ class ShipAudit:
                   ROTATION_COORDINATE: np.array([np.linalg.norm(f.gyro_rad_s.T @ f.dt_s) for f in frames])}
         return [ResidualFamily(self.sensor, "tilt", "rad", e / sigma[:, None], e, coords)]
 
+    # --- the generic term library -----------------------------------------------------------------------------
+
+    def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        if self._drivers is None:
+            self._drivers = self._driver_values(fit if fit is not None else self.fit(()))
+        kinds = {"time": "time", "roll": "angle", "pitch": "angle", "heading": "angle"}
+        return {(self.sensor, "tilt"): [Coordinate(n, v, DRIVER_UNITS[n], kinds.get(n, "state"))
+                                        for n, v in self._drivers.items()]}
+
+    def _driver_values(self, fit: Fit) -> dict[str, np.ndarray]:
+        """Per keyframe of the voyage: time, attitude of ``fit`` (a full-voyage fit), speed, hull accelerations."""
+        if fit.context["fold"] is not None:
+            fit = self.fit(fit.effects)
+        ypr = np.array([fit.values.atRot3(R_KEY(j)).ypr() for j in range(len(self.frames))])
+        t = np.array([f.t_s for f in self.frames])
+        drivers = {"time": t, "roll": ypr[:, 2], "pitch": ypr[:, 1], "heading": np.unwrap(ypr[:, 0])}
+        if self.has_speed:
+            drivers["speed"] = np.interp(t, self.inputs.t_s, self.inputs.speed_m_s)
+        drivers.update(angular_acceleration=np.array([np.linalg.norm(f.A_S) for f in self.frames]),
+                       surge_acceleration=np.array([f.a_known_S[0] for f in self.frames]),
+                       centripetal_acceleration=np.array([f.a_known_S[1] for f in self.frames]))
+        return drivers
+
+    def catalog_term(self, candidate: Candidate) -> None:
+        return None  # no catalog effect of the ship is a single tilt offset in one driver
+
+    def _keys_of(self, term: library.Term) -> list[int]:
+        if term not in self._term_keys:
+            start = sum(len(k) for k in self._term_keys.values())
+            self._term_keys[term] = [gtsam.symbol("k", start + j) for j in range(term.dof())]
+        return self._term_keys[term]
+
+    def _term_columns(self, effects) -> list[tuple[int, np.ndarray]]:
+        out = []
+        for c in effects:
+            if c.term is not None:
+                out += list(zip(self._keys_of(c.term), c.term.columns(self._drivers).T))
+        return out
+
     def residual_correlation(self, fit: Fit) -> float:
         """Variance inflation of the tilt residuals: waves make neighbouring keyframes' residuals alike."""
         return stats.correlation_inflation([fam.whitened for fam in fit.families], max_lag=40)
@@ -130,6 +203,14 @@ class ShipAudit:
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """Value and 1-sigma; the covariance is scaled by the fit's variance factor and by the tilt residuals'
         correlation in time (waves make neighbouring keyframes' residuals alike: fewer independent samples)."""
+        if candidate.term is not None:
+            keys = self._keys_of(candidate.term)
+            joint = joint_covariance(fit.graph, fit.values, keys, "the audited term") * (
+                variance_factor(fit) * self.residual_correlation(fit))
+            estimate, std = library.describe(candidate.term, np.array([fit.values.atVector(k) for k in keys]), joint,
+                                             self._drivers, "rad", DRIVER_UNITS[candidate.term.driver])
+            estimate["target"] = f"{self.sensor}/tilt"
+            return estimate, std
         key, _ = KEYS[candidate.effect]
         cov = marginal_covariances(fit.graph, fit.values, [key], candidate.effect)[key]
         sigma = np.sqrt(np.diag(cov) * variance_factor(fit) * self.residual_correlation(fit))

@@ -89,8 +89,11 @@ def frame_inputs(values: gtsam.Values, keys: FrameKeys, const: FrameConstants):
 
 
 def frame_factor(noise: gtsam.noiseModel.Base, measured: np.ndarray, keys: FrameKeys,
-                 const: FrameConstants) -> gtsam.CustomFactor:
-    """``e = frame_signal(...) - measured`` for one recorded frame (n residuals, counts).
+                 const: FrameConstants, offset_columns=()) -> gtsam.CustomFactor:
+    """``e = frame_signal(...) + sum_c k_c phi_c - measured`` for one recorded frame (n residuals, counts).
+
+    ``offset_columns`` ``(key, phi (n,))``: a signal offset ``k phi`` per diode (``k`` a Vector1, counts per unit of
+    the basis function ``phi`` of a driver: the audit's generic terms).
 
     Jacobians: the model's, chained through ``beta + offset``, the free geometry entries, the eccentricity map
     (``du/deps_y = -kappa``, ``dv/deps_x = kappa``) and the temperature scale (``dp/dk = p0 dT``).
@@ -101,6 +104,8 @@ def frame_factor(noise: gtsam.noiseModel.Base, measured: np.ndarray, keys: Frame
     ordered = [keys.beta] + edge_keys + [k for k in (keys.geometry, keys.aperture, keys.illumination, keys.a0,
                                                      keys.offset, keys.eccentricity, keys.temperature, keys.gain)
                                          if k is not None]
+    terms = [(key, np.asarray(phi, dtype=float)) for key, phi in offset_columns]
+    ordered += [key for key, _ in terms]
 
     def error(this, values, H):
         alpha, beta, geometry, aperture, illumination, a0, gain, p_factor = frame_inputs(values, keys, const)
@@ -127,9 +132,10 @@ def frame_factor(noise: gtsam.noiseModel.Base, measured: np.ndarray, keys: Frame
                 blocks.append(jac.d_geometry[:, [0]] * (geometry[0] / p_factor) * const.temperature_deviation_degC)
             if keys.gain is not None:
                 blocks.append(np.diag(jac.d_gain))
+            blocks += [phi[:, None] for _, phi in terms]
             for i, block in enumerate(blocks):
                 H[i] = block
-        return signal - measured
+        return signal + sum((phi * values.atVector(key)[0] for key, phi in terms), np.zeros(len(measured))) - measured
 
     return gtsam.CustomFactor(noise, ordered, error)
 

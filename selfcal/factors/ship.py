@@ -18,9 +18,13 @@ from selfcal.models import ship
 
 def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: int | None = None,
                 speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0),
-                speed_key: int | None = None) -> gtsam.CustomFactor:
+                speed_key: int | None = None, offset_channels=(), known_offset_rad=(0.0, 0.0)) -> gtsam.CustomFactor:
     """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
     (without a lever-arm key, the known ``lever_arm_m`` is used).
+
+    ``offset_channels`` ``(key, phi)``: a tilt offset ``k phi`` (``k`` a Vector2, rad per unit of ``phi``, this
+    keyframe's value of a driver's basis function: the audit's generic terms); ``known_offset_rad`` one already
+    fitted (held-out prediction).
 
     Without a speed source, ``speed_key`` (Vector1, the speed through the water in m/s) stands for the speed
     log: ``a_known_S`` is then the acceleration per unit speed, ``(0, yaw rate, 0)``, and the speed is the gain
@@ -30,6 +34,9 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: in
         raise ValueError("a speed-log scale and an unknown speed exclude each other")
     gain_key = speed_key if speed_key is not None else speed_scale_key
     keys = [rotation_key] + [k for k in (lever_arm_key, gain_key) if k is not None]
+    channels = [(key, float(phi)) for key, phi in offset_channels]
+    keys += [key for key, _ in channels]
+    known = np.asarray(known_offset_rad, dtype=float)
 
     def error(this, values, H):
         r = values.atVector(lever_arm_key) if lever_arm_key is not None else known_r
@@ -45,7 +52,10 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: in
                 slot += 1
             if gain_key is not None:
                 H[slot] = H_k
-        return e
+                slot += 1
+            for j, (_, phi) in enumerate(channels):
+                H[slot + j] = -phi * np.eye(2)
+        return e - known - sum((phi * values.atVector(key) for key, phi in channels), np.zeros(2))
 
     return gtsam.CustomFactor(noise, keys, error)
 

@@ -197,6 +197,10 @@ class ShipGraph:
         self.t0_s: float | None = None
         self.k = -1  # index of the last keyframe added
         self.last_speed_key: int | None = None  # the unknown speed's newest segment
+        # the audit's generic terms: (key, phi over this graph's keyframes) tilt offsets, fitted (key in the
+        # graph) or, for a held-out part, known (values given: subtracted)
+        self.term_columns: list[tuple[int, np.ndarray]] = []
+        self.known_terms: list[tuple[np.ndarray, np.ndarray]] = []  # (k (2,), phi over the keyframes)
 
     def bias_key(self, t_s: float) -> int:
         return B_KEY(int((t_s - self.t0_s) // self.options.bias_segment_s))
@@ -207,18 +211,22 @@ class ShipGraph:
     def unknown_speed(self, frame: Keyframe) -> bool:
         return self.options.estimate_unknown_speed and not frame.has_speed
 
-    def tilt_factor(self, frame: Keyframe, rotation_key: int) -> gtsam.CustomFactor:
+    def tilt_factor(self, frame: Keyframe, rotation_key: int, k: int | None = None) -> gtsam.CustomFactor:
         """The keyframe's tilt factor, with the hull acceleration as the options and the frame's speed source say
-        (also what the audit evaluates its residuals with)."""
+        (also what the audit evaluates its residuals with); ``k`` the keyframe's index among this graph's (for
+        the audit's terms, default the newest)."""
         options = self.options
         speed_scale = options.estimate_speed_scale and frame.has_speed
         a_known = frame.a_known_S if speed_scale else (1.0 + options.speed_scale) * frame.a_known_S
         speed = self.speed_key(frame.t_s) if self.unknown_speed(frame) else None
         if speed is not None:
             a_known = ship.known_acceleration_S(1.0, 0.0, frame.yaw_rate_rad_s)  # per m/s of speed
+        k = self.k if k is None else k
+        known = sum((coefficient * phi[k] for coefficient, phi in self.known_terms), np.zeros(2))
         return tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), rotation_key, frame.accel_m_s2,
                            frame.A_S, a_known, LEVER_ARM_KEY if options.estimate_lever_arm else None,
-                           SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed)
+                           SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed,
+                           [(key, phi[k]) for key, phi in self.term_columns], known)
 
     def tilt_start(self, frame: Keyframe) -> gtsam.Rot3:
         roll, pitch = inertial.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)

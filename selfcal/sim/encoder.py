@@ -81,6 +81,8 @@ class EncoderScenario:
     noise_sigma: float = 2.0                     # counts per diode
     adc_max: float = 4095.0
     prnu_sigma: float = 0.0                      # per-diode gain (1 sigma, relative)
+    response_compression: float = 0.0            # diode response s - c s^2 / adc_max: c = relative loss at full
+    # scale (a compressive, saturating photodiode / ADC chain; not in the audit's catalog)
     temperature_scale_per_degC: float = 0.0      # dp/p per degC (temperature-dependent scale)
     temperature_range_degC: float = 0.0          # temperature swing over the recording
     temperature_profile: str = "centred"         # "centred" about T_ref, or "ramp" from T_ref upwards
@@ -170,7 +172,7 @@ class EncoderScenario:
                                             self.illumination[k][J], self.a0_at(J),
                                             self.gain[k] if self.prnu_sigma > 0 else None,
                                             jacobians=False)
-        return frames
+        return frames - self.response_compression * frames**2 / self.adc_max
 
     def noise(self, seed, k: int = 0) -> np.ndarray:
         rng = np.random.default_rng([seed, k, 7001])

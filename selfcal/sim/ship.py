@@ -324,6 +324,8 @@ class ShipScenario:
     gyro_bias_deg_h : magnitude of the initial gyro bias (random direction), deg/h.
     gyro_bias_walk_deg_h_sqrt_h : bias random walk, deg/h per sqrt(h) (per axis; 0 for a constant bias).
     accel_bias_m_s2 : constant accelerometer bias (3,), m/s^2.
+    accel_bias_of : optional ``f(t_s (n,), euler_rad (n, 3) roll/pitch/yaw) -> (n, 3)`` m/s^2, an accelerometer
+        bias that varies (effects outside the audit's catalog: one that follows the heading, a step, ...).
     noise : white noise densities (and accel random walk) added by ``perturbed_measurements``; its
         ``gyroscope_random_walk`` is replaced by the true bias walk in sensor.yaml and never added twice.
     speed_log_scale : true scale of the speed log (1.02 = reads 2 % high).
@@ -349,12 +351,13 @@ class ShipScenario:
                  speed_log_rate_hz: float = 1.0, gps_rate_hz: float = 1.0, gps_speed_noise_m_s: float = 0.05,
                  roll_scale: float = 1.0, pitch_scale: float = 1.0, yaw_wave_scale: float = 1.0,
                  heave_scale: float = 1.0, current_m_s=(0.0, 0.0), gravity_m_s2: float = inertial.STANDARD_GRAVITY_M_S2,
-                 t0_ns: int = DEFAULT_T0_NS, gyro_scale=(0.0, 0.0, 0.0)):
+                 t0_ns: int = DEFAULT_T0_NS, gyro_scale=(0.0, 0.0, 0.0), accel_bias_of=None):
         self.kind, self.duration_s, self.rate_hz, self.seed = kind, float(duration_s), float(rate_hz), seed
         self.lever_arm_m = np.asarray(lever_arm_m, dtype=float).reshape(3)
         self.gyro_bias_deg_h = float(gyro_bias_deg_h)
         self.gyro_bias_walk_deg_h_sqrt_h = float(gyro_bias_walk_deg_h_sqrt_h)
         self.accel_bias_m_s2 = np.asarray(accel_bias_m_s2, dtype=float).reshape(3)
+        self.accel_bias_of = accel_bias_of
         self.gyro_scale = np.asarray(gyro_scale, dtype=float).reshape(3)
         self.noise = noise if noise is not None else ImuNoise()
         self.speed_log_scale, self.speed_log_noise_m_s = float(speed_log_scale), float(speed_log_noise_m_s)
@@ -413,6 +416,8 @@ class ShipScenario:
             effects.append("lever_arm")
         if np.any(self.accel_bias_m_s2):
             effects.append("accel_bias")
+        if self.accel_bias_of is not None:
+            effects.append("accel_bias_varying")
         if self.speed_log_scale != 1.0:
             effects.append("speed_log_scale")
         if np.any(self.gyro_scale):
@@ -450,6 +455,9 @@ class ShipScenario:
         w, f = self.true_imu(t_s)
         gyro = w * (1.0 + self.gyro_scale) + self.truth_gyro_bias(t_s)  # scale 0: w * 1.0 is w, bit for bit
         accel = f + self.accel_bias_m_s2
+        if self.accel_bias_of is not None:
+            roll, pitch, yaw = self.motion.euler(t_s)
+            accel = accel + self.accel_bias_of(t_s, np.column_stack([roll[0], pitch[0], yaw[0]]))
         log_ns, log_s = _stamps(self.duration_s, self.speed_log_rate_hz, self.t0_ns)
         gps_ns, gps_s = _stamps(self.duration_s, self.gps_rate_hz, self.t0_ns)
         speed_log = self.speed_log_scale * self.motion.speed(log_s)[0]

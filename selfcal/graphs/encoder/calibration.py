@@ -235,11 +235,13 @@ class _Layout:
 
 
 def build_graph(problem: Problem, model: EncoderModel, values: gtsam.Values, edge_alpha: np.ndarray,
-                frames: list[tuple[int, int]] | None = None, gauge_edge: int = 0):
+                frames: list[tuple[int, int]] | None = None, gauge_edge: int = 0, term_columns: dict | None = None):
     """The factor graph at the current ``values`` (used to pick each frame's edges); returns graph, layout.
 
-    ``frames``: (array, J) pairs to include (default: every decoded frame).
+    ``frames``: (array, J) pairs to include (default: every decoded frame); ``term_columns``: per (array, J) the
+    audit's generic terms, ``[(key, phi over the frame's diodes)]`` (:func:`selfcal.factors.encoder.frame_factor`).
     """
+    term_columns = term_columns or {}
     code = problem.code
     graph = gtsam.NonlinearFactorGraph()
     if frames is None:
@@ -275,7 +277,7 @@ def build_graph(problem: Problem, model: EncoderModel, values: gtsam.Values, edg
             temperature=TEMPERATURE(k) if model.temperature_scale else None,
             gain=GAIN(k) if model.prnu else None)
         noise = gtsam.noiseModel.Isotropic.Sigma(arr.n, arr.noise_sigma)
-        graph.add(fenc.frame_factor(noise, arr.frames[J], keys, const))
+        graph.add(fenc.frame_factor(noise, arr.frames[J], keys, const, term_columns.get((k, J), ())))
     n_frame_factors = graph.size()
     for e in sorted(edge_vars):
         graph.add(gtsam.PriorFactorVector(EDGE(e), np.array([code.nominal_edge_angles()[e]]),
