@@ -52,3 +52,22 @@ def test_cli_audit_system_scan_is_wired():
     from selfcal import registry
     assert "scan" in registry.names("audit")
     assert build_parser().parse_args(["audit", "REC", "--system", "scan", "--json", "x.json"]).system == "scan"
+
+
+def test_sphere_radius_growing_with_range_is_unlisted_in_range_not_a_gyro_scale(tmp_path):
+    """Each sphere looks 20 mm per m of range bigger (a footprint or matching window growing with range), 6
+    spheres: no catalog entry.  Before the term library the audit called such data a gyro scale error (297 %);
+    now the catalog's look-alikes (gyro and accelerometer scale, clock offset) must not be named, and the term in
+    ``range`` carries the slope; ``sphere_radius``, if named, is the radius at the term's x0 (no constant in its
+    basis): ``slope (x0 - mean placement range)``."""
+    slope = 0.02
+    result = audit(tmp_path, n_spheres=6, sphere_radius_per_range=slope).to_json()
+    assert set(f["effect"] for f in result["findings"]) <= {"sphere_radius", "unlisted"}, result["findings"]
+    term = [f for f in result["findings"] if f["effect"] == "unlisted"]
+    assert [(f["driver"], f["form"]) for f in term] == [("range", "poly1")], term
+    coefficient, sigma = term[0]["estimate"]["coefficients"][0][0], term[0]["std"]["coefficients"][0][0]
+    assert abs(coefficient - slope) < 3 * sigma, (coefficient, sigma)
+    radius = [f for f in result["findings"] if f["effect"] == "sphere_radius"]
+    if radius:
+        expected = slope * (term[0]["estimate"]["x0"] - np.mean(ScanScenario().sphere_range_m))
+        assert abs(radius[0]["estimate"]["dR_m"] - expected) < 3 * radius[0]["std"]["dR_m"]

@@ -21,7 +21,9 @@ effect                 signature in the sphere residuals                        
 =====================  ==================================================================  ==================
 
 Residual family: ``scan0/sphere`` (m), one radial residual per point of set B, coordinates: time, speed, angular
-rate.  Folds interleave the spheres (even / odd in the order the scan reaches them): a held-out sphere is
+rate.  Generic terms (:mod:`selfcal.audit.terms`): the sphere radius varying as ``k phi(x)`` over the points, in
+``time``, ``speed``, ``angular_rate`` and ``range`` (m: the distance from the stereo sensor to the sphere's centre
+at the clock, from the first full fit the library sees; not the points' own noisy depths).  Folds interleave the spheres (even / odd in the order the scan reaches them): a held-out sphere is
 predicted with the error terms (and effect) fitted on the others, its centre re-fitted at the known radius;
 contiguous halves would make every fold an extrapolation of the inertial drift over half the scan.
 """
@@ -32,9 +34,13 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from scipy.optimize import least_squares
+
+from selfcal.audit import terms as library
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.terms import Coordinate
 from selfcal.graphs import scan as gs
-from selfcal.core.solve import dense_marginals, optimize
+from selfcal.core.solve import dense_marginals, joint_covariance, optimize
 from selfcal.models import scan as ms
 from selfcal.core.sphere import SphereNotFoundError, fit_sphere
 
@@ -62,6 +68,10 @@ class ScanAudit:
         spheres = sorted({o.sphere for o in problem.observations},
                          key=lambda j: min(o.clock for o in problem.observations if o.sphere == j))
         self._order = {j: i for i, j in enumerate(spheres)}
+        self._index = {id(o): i for i, o in enumerate(problem.observations)}
+        self._offsets = np.cumsum([0] + [len(o.sigmas_m) for o in problem.observations])
+        self._drivers: dict[str, np.ndarray] | None = None
+        self._term_keys: dict[library.Term, list[int]] = {}
 
     def candidates(self) -> list[Candidate]:
         return [Candidate(e, self.sensor, MEANINGS[e], "sphere", COORDINATE[e]) for e in MEANINGS]
@@ -74,12 +84,15 @@ class ScanAudit:
 
     @staticmethod
     def _model(effects) -> gs.ScanModel:
-        return gs.ScanModel(tuple(c.effect for c in effects))
+        return gs.ScanModel(tuple(c.effect for c in effects if c.term is None))
 
     def fit(self, effects, fold=None) -> Fit:
         model = self._model(effects)
         problem = self._part(fold)
-        graph, values = gs.build_collapsed(problem, model)
+        columns = self._term_columns(effects, problem)
+        graph, values = gs.build_collapsed(problem, model, columns)
+        for key in {key for group in columns.values() for key, _ in group}:
+            values.insert(key, np.zeros(1))
         values = optimize(graph, values, max_iterations=50)
         families = [self._family(problem, self._residuals(problem, graph, values))]
         return Fit(tuple(effects), graph, values, families, {"model": model, "fold": fold, "problem": problem})
@@ -103,12 +116,74 @@ class ScanAudit:
                               {"time_s": t, "speed": speed, "angular rate": rate, "point": np.arange(len(e), dtype=float)})
 
     def extend(self, fit: Fit, candidate: Candidate):
-        model = self._model(fit.effects + (candidate,))
-        graph, _ = gs.build_collapsed(fit.context["problem"], model)
+        graph, values, groups = self._extended(fit, [candidate])
+        return graph, values, groups[0]
+
+    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+        """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
+        return self._extended(fit, candidates)
+
+    def _extended(self, fit: Fit, candidates):
+        effects = fit.effects + tuple(candidates)
+        problem = fit.context["problem"]
+        graph, _ = gs.build_collapsed(problem, self._model(effects), self._term_columns(effects, problem))
         values = gtsam.Values(fit.values)
-        key, dim = gs.EXT_KEYS[candidate.effect], gs.EXT_DIM[candidate.effect]
-        values.insert(key, np.zeros(dim))
-        return graph, values, [(key, np.arange(dim))]
+        groups = []
+        for cand in candidates:
+            keys = ([(gs.EXT_KEYS[cand.effect], gs.EXT_DIM[cand.effect])] if cand.term is None
+                    else [(k, 1) for k in self._keys_of(cand.term)])
+            for key, dim in keys:
+                values.insert(key, np.zeros(dim))
+            groups.append([(key, np.arange(dim)) for key, dim in keys])
+        return graph, values, groups
+
+    # --- the generic term library -----------------------------------------------------------------------------
+
+    def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        if self._drivers is None:
+            self._drivers = self._driver_values(fit if fit is not None and fit.context["fold"] is None
+                                                else self.fit(fit.effects if fit is not None else ()))
+        units = {"time": "s", "speed": "m s^-1", "angular_rate": "rad s^-1", "range": "m"}
+        return {(self.sensor, "sphere"): [Coordinate(n, v, units[n], "time" if n == "time" else "state")
+                                          for n, v in self._drivers.items()]}
+
+    def _driver_values(self, fit: Fit) -> dict[str, np.ndarray]:
+        """Per point of every observation: the family's coordinates and the sensor-to-centre range of ``fit``."""
+        problem = self.problem
+        family = self._family(problem, self._residuals(problem, fit.graph, fit.values))
+        clocks = problem.b_clocks()
+        R, r = gs.corrected_clock_poses(problem, self._solution(fit), clocks)
+        row = {m: i for i, m in enumerate(clocks)}
+        ranges = []
+        for obs in problem.observations:
+            i = row[obs.clock]
+            centre_I = R[i].T @ (fit.values.atVector(gs.O_KEY(obs.sphere)) - r[i])
+            centre_V = problem.imu_R_vision.T @ (centre_I - problem.imu_t_vision)
+            ranges.append(np.full(len(obs.sigmas_m), np.linalg.norm(centre_V)))
+        return {"time": family.coordinates["time_s"], "speed": family.coordinates["speed"],
+                "angular_rate": family.coordinates["angular rate"], "range": np.concatenate(ranges)}
+
+    def catalog_term(self, candidate: Candidate) -> None:
+        return None  # no catalog effect of the scan is a radius varying with one driver
+
+    def _keys_of(self, term: library.Term) -> list[int]:
+        if term not in self._term_keys:
+            start = sum(len(k) for k in self._term_keys.values())
+            self._term_keys[term] = [gtsam.symbol("u", start + j) for j in range(term.dof())]
+        return self._term_keys[term]
+
+    def _term_columns(self, effects, problem) -> dict[int, list[tuple[int, np.ndarray]]]:
+        """Per observation of ``problem`` (its index there), the radius terms among ``effects``."""
+        out: dict[int, list] = {}
+        for c in effects:
+            if c.term is None:
+                continue
+            columns = c.term.columns(self._drivers)
+            for i, obs in enumerate(problem.observations):
+                g = self._index[id(obs)]
+                rows = slice(self._offsets[g], self._offsets[g + 1])
+                out.setdefault(i, []).extend(zip(self._keys_of(c.term), columns[rows].T))
+        return out
 
     def _solution(self, fit: Fit) -> gs.ScanSolution:
         values, model = fit.values, fit.context["model"]
@@ -126,21 +201,36 @@ class ScanAudit:
         if "extrinsic_rotation" in sol.extensions:
             R_IV = R_IV @ ms.so3.exp(sol.extensions["extrinsic_rotation"][0])
         radius = problem.radius_m + (sol.extensions["sphere_radius"][0][0] if "sphere_radius" in sol.extensions else 0.0)
+        terms = self._term_columns(fit.effects, problem)
         residuals, kept = [], []
         for j in sorted({o.sphere for o in problem.observations}):
-            obs = [o for o in problem.observations if o.sphere == j]
+            index = [i for i, o in enumerate(problem.observations) if o.sphere == j]
+            obs = [problem.observations[i] for i in index]
             pts = [ms.world_points(R[row[o.clock]], r[row[o.clock]], R_IV, problem.imu_t_vision, o.vision_p)
                    for o in obs]
+            radii = [radius + sum((phi * fit.values.atVector(key)[0] for key, phi in terms.get(i, ())),
+                                  np.zeros(len(p))) for i, p in zip(index, pts)]
             try:
                 c = fit_sphere(np.concatenate(pts), radius_m=radius).center_m
             except SphereNotFoundError:
                 continue
-            residuals += [np.linalg.norm(p - c, axis=1) - radius for p in pts]
+            if terms:  # the radius varies over the points: refit the centre with each point's own
+                all_pts, all_r = np.concatenate(pts), np.concatenate(radii)
+                c = least_squares(lambda x: np.linalg.norm(all_pts - x, axis=1) - all_r, c).x
+            residuals += [np.linalg.norm(p - c, axis=1) - rr for p, rr in zip(pts, radii)]
             kept += obs
         return [self._family(replace(problem, observations=kept), residuals)] if residuals else []
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """Value and 1-sigma; the covariance scaled by the a-posteriori variance factor when it exceeds 1."""
+        if candidate.term is not None:
+            keys = self._keys_of(candidate.term)
+            joint = joint_covariance(fit.graph, fit.values, keys, "the audited term") * max(1.0, variance_factor(fit))
+            units = {"time": "s", "speed": "m s^-1", "angular_rate": "rad s^-1", "range": "m"}
+            estimate, std = library.describe(candidate.term, np.array([fit.values.atVector(k) for k in keys]), joint,
+                                             self._drivers, "m", units[candidate.term.driver])
+            estimate["target"] = f"{self.sensor}/sphere"
+            return estimate, std
         key = gs.EXT_KEYS[candidate.effect]
         cov = dense_marginals(fit.graph, fit.values, [key], candidate.effect)[key]
         s = gs.EXTENSION_SCALE[candidate.effect] * np.sqrt(max(1.0, variance_factor(fit)))

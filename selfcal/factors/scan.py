@@ -121,14 +121,15 @@ def inertial_tie_factor(sigmas, ins_R, ins_r, Phi_k, pose_key, theta_blocks, tim
 
 def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m, ins_R, ins_r, Phi_k, center_key,
                         theta_blocks, time_offset_key=None, twist=None, extrinsic_key=None,
-                        radius_key=None) -> gtsam.CustomFactor:
+                        radius_key=None, radius_columns=()) -> gtsam.CustomFactor:
     """The sphere constraint with the clock's pose *replaced* by the corrected INS pose (no per-clock pose).
 
     ``e_i = |A (R_IV Exp(eps) p_V,i + t_IV) - O| - (R + dR)`` with ``A = T(theta) Exp(dt xi)``: the graph of
     :func:`sphere_surface_factor` + :func:`inertial_tie_factor` with the tie made rigid (INS jitter neglected
     against the point noise, or folded into ``sigmas_m`` given as a (k, k) covariance: the jitter's common
     effect on the clock's points, see :func:`selfcal.graphs.scan.build_collapsed`).  Few variables, so the
-    audit's score tests stay cheap.
+    audit's score tests stay cheap.  ``radius_columns`` ``(key, phi (k,))``: the radius varying over the points as
+    ``k phi`` (``k`` a Vector1, m per unit of a driver's basis function: the audit's generic terms).
     """
     p_V = np.asarray(vision_p, dtype=float)
     R_IV, t_IV = np.asarray(imu_R_vision, float), np.asarray(imu_t_vision, float)
@@ -142,6 +143,8 @@ def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m
     xi = np.asarray(twist, float) if twist is not None else np.zeros(6)
     keys = ([center_key] + [k for k, _, _ in theta_blocks]
             + [k for k in (time_offset_key, extrinsic_key, radius_key) if k is not None])
+    terms = [(key, np.asarray(phi, dtype=float)) for key, phi in radius_columns]
+    keys += [key for key, _ in terms]
 
     def error(this, values, H):
         eta = np.concatenate([values.atVector(k) for k, _, _ in theta_blocks])
@@ -153,6 +156,7 @@ def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m
         A = gtsam.Pose3(gtsam.Rot3(R), r).compose(D, H_c1, H_c2)
         p_I, R_ext, eps = _points_in_imu(values, p_V, R_IV, t_IV, extrinsic_key)
         radius = radius_m + (values.atVector(radius_key)[0] if radius_key is not None else 0.0)
+        radius = radius + sum((phi * values.atVector(key)[0] for key, phi in terms), np.zeros(len(p_V)))
         O = values.atVector(center_key)
         e, d_pose, d_center, d_pI = ms.sphere_surface_residuals(A.rotation().matrix(), A.translation(), p_I, O,
                                                                  radius, with_jacobians=True)
@@ -166,6 +170,7 @@ def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m
             if time_offset_key is not None:
                 blocks.append((d_pose @ H_c2 @ H_exp @ xi)[:, None])
             blocks += _extrinsic_and_radius_blocks(d_pI, R_ext, p_V, eps, extrinsic_key, radius_key)
+            blocks += [-phi[:, None] for _, phi in terms]
             for i, Jb in enumerate(blocks):
                 H[i] = Jb
         return e

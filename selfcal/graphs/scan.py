@@ -174,10 +174,12 @@ def build(problem: ScanProblem, model: ScanModel = ScanModel()):
     return graph, values
 
 
-def build_collapsed(problem: ScanProblem, model: ScanModel = ScanModel()):
+def build_collapsed(problem: ScanProblem, model: ScanModel = ScanModel(), term_columns=None):
     """The graph without per-clock poses (:func:`selfcal.factors.scan.sphere_theta_factor`): error terms,
     centres and extensions only.  The INS jitter is marginalised into each factor's covariance (exact for the
-    linearised tie); the audit uses this graph so its score tests handle tens of variables, not hundreds."""
+    linearised tie); the audit uses this graph so its score tests handle tens of variables, not hundreds.
+    ``term_columns``: per observation (index), the audit's generic radius terms ``[(key, phi over its points)]``."""
+    term_columns = term_columns or {}
     if not problem.observations:
         raise DegenerateDataError("no sphere points (set B is empty): the scan cannot be corrected")
     graph, values = prior_factors(model, problem)
@@ -185,7 +187,7 @@ def build_collapsed(problem: ScanProblem, model: ScanModel = ScanModel()):
     R, r, Phi, twist = clock_inputs(problem, clocks)
     row = {m: i for i, m in enumerate(clocks)}
     blocks = _theta_blocks(problem, model)
-    for obs in problem.observations:
+    for n_obs, obs in enumerate(problem.observations):
         i = row[obs.clock]
         # the INS jitter moves all points of the clock together: marginalised into a full covariance
         # C = diag(sigma^2) + J_pose diag(jitter^2) J_pose^T (linear, at the INS pose and the detected centre)
@@ -197,7 +199,7 @@ def build_collapsed(problem: ScanProblem, model: ScanModel = ScanModel()):
             cov, obs.vision_p, problem.imu_R_vision, problem.imu_t_vision, problem.radius_m, R[i], r[i],
             Phi[i], O_KEY(obs.sphere), blocks, EXT_KEYS["time_offset"] if model.has("time_offset") else None,
             twist[i], EXT_KEYS["extrinsic_rotation"] if model.has("extrinsic_rotation") else None,
-            EXT_KEYS["sphere_radius"] if model.has("sphere_radius") else None))
+            EXT_KEYS["sphere_radius"] if model.has("sphere_radius") else None, term_columns.get(n_obs, ())))
     for j in sorted({o.sphere for o in problem.observations}):
         values.insert(O_KEY(j), np.asarray(problem.centers0[j], dtype=float))
     return graph, values

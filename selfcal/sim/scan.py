@@ -131,6 +131,10 @@ class ScanScenario:
     time_offset_s: float = 0.0
     extrinsic_rotation_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     sphere_radius_error_m: float = 0.0
+    sphere_radius_per_range: float = 0.0  # m of apparent radius per m of range from the sensor to the sphere
+    # (not in the audit's catalog; as a beam footprint or a matcher's window growing with range would do)
+    disparity_offset_px: float = 0.0  # a matching bias of the right camera (not in the audit's catalog): depth
+    # error ~ z^2 d / (f B), every sphere scaled about the sensor by a factor growing with its range
     accel_scale: np.ndarray = field(default_factory=lambda: np.zeros(3))
     gyro_scale: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -325,6 +329,12 @@ def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0) -> ScanSi
         X_W = o_W + d_W[ok] * tl[ok][:, None]
         lab = lab[ok]
         X_V = (X_W - o_W) @ R_WV  # exact point in the vision frame
+        if sc.sphere_radius_per_range and np.any(lab >= 0):
+            on = lab >= 0
+            c_V = (centers[lab[on]] - o_W) @ R_WV
+            grow = sc.sphere_radius_per_range * (np.linalg.norm(c_V, axis=1) - np.mean(sc.sphere_range_m))
+            X_V[on] = c_V + (X_V[on] - c_V) * (1.0 + grow / radius_true)[:, None]
+            X_W = o_W + X_V @ R_WV.T
         # right camera: in front, in the field, and not occluded
         c_R_W = o_W + R_WV @ right.vision_t_cam
         to = X_W - c_R_W
@@ -341,6 +351,7 @@ def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0) -> ScanSi
         # matching noise along the line only: the row is the sensor's single row on both cameras
         uvL[:, 0] += rng.normal(0.0, sc.pixel_sigma, n) if sc.pixel_sigma > 0 else 0.0
         uvR[:, 0] += rng.normal(0.0, sc.pixel_sigma, n) if sc.pixel_sigma > 0 else 0.0
+        uvR[:, 0] += sc.disparity_offset_px
         nL = cv2.undistortPoints(uvL.reshape(-1, 1, 2), left.K, left.dist).reshape(-1, 2)
         nR = cv2.undistortPoints(uvR.reshape(-1, 1, 2), right.K, right.dist).reshape(-1, 2)
         Xh = cv2.triangulatePoints(P_left, P_right, nL.T.astype(float), nR.T.astype(float))
