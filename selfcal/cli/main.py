@@ -13,7 +13,7 @@ import logging
 import sys
 
 from selfcal import registry
-from selfcal.cli.common import Parser, Verb
+from selfcal.cli.common import Parser, UsageError, Verb
 
 GROUPS = {  # verbs that take a system as their next word
     "calibrate": "calibrate a sensor system from a recording",
@@ -64,15 +64,41 @@ def build_parser() -> Parser:
     return parser
 
 
+INPUT_ARGUMENTS = ("recording", "source", "scan", "datasets", "reference", "spec", "heldout")
+OUTPUT_ARGUMENTS = ("out", "json", "report", "png", "out_tum", "markdown")
+
+
+def check_outputs_apart_from_inputs(args) -> None:
+    """An output may not replace an input: not the same path, not a folder holding an input, not an existing file
+    inside an input folder (``--out REC/imu0/data.csv`` would destroy the recording being read)."""
+    from pathlib import Path
+
+    def paths(value):
+        return [Path(v).resolve() for v in (value if isinstance(value, (list, tuple)) else [value]) if v]
+
+    inputs = [p for name in INPUT_ARGUMENTS for p in paths(getattr(args, name, None))]
+    for name in OUTPUT_ARGUMENTS:
+        for out in paths(getattr(args, name, None)):
+            for source in inputs:
+                if out == source or source.is_relative_to(out) or (out.is_relative_to(source) and out.exists()):
+                    raise UsageError(f"{name.replace('_', '-')} {out} would overwrite the input {source}: "
+                                     "write it somewhere else")
+
+
 def main(argv=None) -> int:
     from selfcal.core.errors import USER_ERRORS
     try:
         args = build_parser().parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        check_outputs_apart_from_inputs(args)
         code = args.run(args)
     except USER_ERRORS as err:
         print(f"selfcal: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 1
+    except OSError as err:  # a full disk, a read-only file system, a name too long: the system's reason, one line
+        where = f"{err.filename}: " if getattr(err, "filename", None) else ""
+        print(f"selfcal: error: {where}{' '.join((err.strerror or str(err)).split())}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("selfcal: interrupted", file=sys.stderr)

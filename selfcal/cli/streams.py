@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from selfcal import registry
-from selfcal.cli.common import UsageError, Verb
+from selfcal.cli.common import UsageError, Verb, positive_float
 
 
 def stream_arguments(p) -> None:
@@ -22,7 +22,7 @@ def stream_arguments(p) -> None:
     sources.add_argument("--can-sensor", default="incl0", help="sensor name of the CAN inclinometer (default incl0)")
     sources.add_argument("--replay", metavar="REC", help="replay a recording (as fast as possible unless --realtime)")
     sources.add_argument("--realtime", action="store_true", help="replay at the recording's own pace")
-    sources.add_argument("--speed", type=float, default=1.0, help="with --realtime: playback speed factor")
+    sources.add_argument("--speed", type=positive_float, default=1.0, help="with --realtime: playback speed factor")
     sources.add_argument("--max-samples", type=int, help="stop after this many samples")
 
 
@@ -45,7 +45,7 @@ def print_stream_stats(stream) -> None:
 def record_arguments(p) -> None:
     p.add_argument("out", help="recording folder (created, or appended to: never overwritten)")
     stream_arguments(p)
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--duration", type=positive_float, help="stop after this many seconds (default: until Ctrl-C)")
 
 
 def record(args) -> None:

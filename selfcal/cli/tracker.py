@@ -1,12 +1,12 @@
 """``selfcal simulate|smooth tracker``: laser tracker + inclinometer + beam camera + IMU (patent 004)."""
 from __future__ import annotations
 
-from selfcal.cli.common import Verb, output
+from selfcal.cli.common import Verb, output, positive_float
 
 
 def simulate_arguments(p) -> None:
     p.add_argument("--out", required=True, help="recording folder to write")
-    p.add_argument("--duration", type=float, default=600.0, help="run length, s")
+    p.add_argument("--duration", type=positive_float, default=600.0, help="run length, s")
     p.add_argument("--faults", action="store_true", help="inject the default fault schedule (truth/ logs it)")
     p.add_argument("--advance-mm-s", type=float, default=1.0, help="advance speed, mm/s")
     p.add_argument("--bursts-per-min", type=float, default=2.0, help="mean vibration bursts per minute")

@@ -203,6 +203,10 @@ class ShipGraph:
         self.known_terms: list[tuple[np.ndarray, np.ndarray]] = []  # (k (2,), phi over the keyframes)
 
     def bias_key(self, t_s: float) -> int:
+        """The gyro bias segment of ``t_s``; one bias for the whole voyage when the sensor states no random walk
+        (a constant bias: segments tied with a zero sigma made the system indeterminate)."""
+        if self.gyro_random_walk <= 0.0:
+            return B_KEY(0)
         return B_KEY(int((t_s - self.t0_s) // self.options.bias_segment_s))
 
     def speed_key(self, t_s: float) -> int:

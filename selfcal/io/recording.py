@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from selfcal.core.sanity import imu_problems
+
 from selfcal.core.errors import SelfcalError
 from selfcal.io.atomic import atomic_directory
 
@@ -95,6 +97,10 @@ class Recording:
         missing = [c for c in IMU_UNITS if c not in s.values]
         if missing:
             raise RecordingError(f"{where}/{name}: not an IMU sensor (missing columns {', '.join(missing)})")
+        problems = imu_problems((s.t_ns - s.t_ns[0]) * 1e-9, np.column_stack([s.values[c] for c in GYRO_COLUMNS]),
+                                np.column_stack([s.values[c] for c in ACCEL_COLUMNS]), GYRO_COLUMNS + ACCEL_COLUMNS)
+        if problems:
+            raise RecordingError(f"{where}/{name}: {problems[0]}")
         channels = {c: v for c, v in s.values.items() if c not in IMU_UNITS}
         return ImuData(name=name, t_ns=s.t_ns,
                        gyro_rad_s=np.column_stack([s.values[c] for c in GYRO_COLUMNS]),
@@ -173,7 +179,9 @@ def read_recording(path) -> Recording:
         if sub.name == TRUTH_FOLDER or sub.name.startswith(".") or not (sub / "data.csv").is_file():
             continue
         t_ns, values, units = _read_data_csv(sub / "data.csv")
-        sensors[sub.name] = SensorData(sub.name, t_ns, values, units, _read_sensor_yaml(sub / "sensor.yaml"), sub)
+        simulated = (path / TRUTH_FOLDER).is_dir()
+        sensors[sub.name] = SensorData(sub.name, t_ns, values, units, _read_sensor_yaml(sub / "sensor.yaml", simulated),
+                                       sub)
     if not sensors:
         raise RecordingError(f"{path}: no sensor folder with a data.csv in this recording")
     return Recording(path=path, sensors=sensors)
@@ -208,7 +216,14 @@ def _load_yaml(file: Path):
         raise RecordingError(f"{file}: cannot read ({_one_line(err)})") from None
 
 
-def _read_sensor_yaml(file: Path) -> dict:
+POSITIVE_KEYS = ("rate_hz", "accelerometer_noise_density", "gyroscope_noise_density")  # a zero noise density
+# claims a perfect sensor (every residual infinitely significant); a zero rate has no sample period
+NON_NEGATIVE_KEYS = ("accelerometer_random_walk", "gyroscope_random_walk")  # zero: a constant bias
+
+
+def _read_sensor_yaml(file: Path, simulated: bool = False) -> dict:
+    """sensor.yaml as a mapping, its noise and rate keys checked; ``simulated`` (the recording holds ``truth/``)
+    admits noise densities of zero (a simulation's exact data), which no measured sensor has."""
     if not file.exists():
         return {}
     meta = _load_yaml(file)
@@ -217,6 +232,15 @@ def _read_sensor_yaml(file: Path) -> dict:
     if not isinstance(meta, dict):
         raise RecordingError(f"{file}: expected a mapping of keys (sensor_type, rate_hz, ...), "
                              f"found a {type(meta).__name__}")
+    for key in POSITIVE_KEYS + NON_NEGATIVE_KEYS:
+        if key not in meta:
+            continue
+        value = meta[key]
+        number = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+        zero_allowed = key in NON_NEGATIVE_KEYS or (simulated and key != "rate_hz")
+        if number is None or not np.isfinite(number) or number < 0 or (number == 0 and not zero_allowed):
+            need = "a number >= 0" if zero_allowed else "a positive number (no measured sensor is noise-free)"
+            raise RecordingError(f"{file}: {key} is {value!r}; it must be {need}")
     return meta
 
 

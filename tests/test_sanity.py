@@ -1,0 +1,146 @@
+"""Physical sanity at the recording boundary (issue 16): an IMU recording the tool cannot vouch for is refused
+with one line naming the likely cause, never calibrated or audited; every real recording passes.
+
+Mutations of one simulated multi-position recording: the accelerometer in g or mg, the gyro in deg/s, a dead
+(constant) column, a 1e300 placeholder, a 5 min gap, sensor.yaml noise that is zero, negative or text.  Each must
+be refused by ``Recording.imu`` and, through the command line, end with exit 1, one line on stderr, no
+traceback and no output file.  The unmutated recording must pass (the checks are physics, not tuning)."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from selfcal.cli.main import main
+from selfcal.core.inertial import STANDARD_GRAVITY_M_S2, ImuNoise
+from selfcal.io.recording import ACCEL_COLUMNS, GYRO_COLUMNS, RecordingError, read_recording, write_recording
+from selfcal.sim.imu import ImuScenario, random_intrinsics
+from selfcal.sim.trajectories import MultiPositionTrajectory
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+@pytest.fixture(scope="module")
+def clean():
+    trajectory = MultiPositionTrajectory(n_poses=12, seed=3)
+    accel, gyro = random_intrinsics(3)
+    return ImuScenario(trajectory, accel=accel, gyro=gyro, noise=ImuNoise(), rate_hz=100.0).perturbed_measurements(3)
+
+
+def mutated(rec, columns=None, scale=1.0, value=None, rows=None, t_ns=None, meta=None):
+    sensor = rec.sensors["imu0"]
+    values = {c: v.copy() for c, v in sensor.values.items()}
+    for c in columns or ():
+        if value is None:
+            values[c] = values[c] * scale
+        else:
+            values[c][slice(None) if rows is None else rows] = value
+    sensor = replace(sensor, values=values, t_ns=sensor.t_ns if t_ns is None else t_ns,
+                     meta={**sensor.meta, **(meta or {})})
+    return replace(rec, sensors={**rec.sensors, "imu0": sensor})
+
+
+def gap(rec, seconds=300.0):
+    t = rec.sensors["imu0"].t_ns.copy()
+    t[len(t) // 2:] += int(seconds * 1e9)
+    return t
+
+
+MUTATIONS = {
+    "accel in g": (dict(columns=ACCEL_COLUMNS, scale=1 / STANDARD_GRAVITY_M_S2), "in g"),
+    "accel in mg": (dict(columns=ACCEL_COLUMNS, scale=1000 / STANDARD_GRAVITY_M_S2), "in mg"),
+    "gyro in deg/s": (dict(columns=GYRO_COLUMNS, scale=180 / np.pi), "deg/s"),
+    "dead z accelerometer": (dict(columns=ACCEL_COLUMNS[2:], value=0.0), "constant"),
+    "1e300 placeholder": (dict(columns=GYRO_COLUMNS[:1], value=1e300, rows=slice(100, 101)), "beyond any sensor"),
+}
+
+
+def test_the_clean_recording_passes(clean):
+    data = clean.imu("imu0")
+    assert np.all(np.isfinite(data.accel_m_s2))
+
+
+@pytest.mark.parametrize("name", MUTATIONS)
+def test_a_recording_the_tool_cannot_vouch_for_is_refused(clean, name):
+    kwargs, words = MUTATIONS[name]
+    with pytest.raises(RecordingError, match=words):
+        mutated(clean, **kwargs).imu("imu0")
+
+
+def test_a_five_minute_gap_is_refused(clean):
+    with pytest.raises(RecordingError, match="without samples"):
+        mutated(clean, t_ns=gap(clean)).imu("imu0")
+
+
+@pytest.mark.parametrize("value", [0.0, -1e-3, "abc", float("nan")])
+def test_sensor_yaml_noise_must_be_a_positive_number(clean, tmp_path, value):
+    path = write_recording(mutated(clean, meta={"gyroscope_noise_density": value}), tmp_path / "rec")
+    with pytest.raises(RecordingError, match="gyroscope_noise_density"):
+        read_recording(path)
+
+
+@pytest.mark.parametrize("name", ["accel in g", "gyro in deg/s"])
+def test_the_command_line_refuses_in_one_line_and_writes_nothing(clean, tmp_path, capsys, name):
+    kwargs, words = MUTATIONS[name]
+    rec = write_recording(mutated(clean, **kwargs), tmp_path / "rec")
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", "imu", str(rec), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0] and "Traceback" not in err[0], err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in DATA.iterdir() if (p / "imu0").is_dir()))
+def test_every_shipped_recording_passes(name):
+    rec = read_recording(DATA / name)
+    for imu in rec.imu_names():
+        rec.imu(imu)
+
+
+# --- outputs (issue 16, item 4) ---------------------------------------------------------------------------------
+
+def test_an_output_that_would_overwrite_the_input_is_refused(clean, tmp_path, capsys):
+    rec = write_recording(clean, tmp_path / "rec")
+    data = rec / "imu0" / "data.csv"
+    before = data.read_bytes()
+    assert main(["calibrate", "imu", str(rec), "--out", str(data)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "would overwrite the input" in err[0], err
+    assert data.read_bytes() == before
+
+
+def test_an_os_error_on_the_output_is_one_line(clean, tmp_path, capsys):
+    """An output that is a directory (IsADirectoryError, not among the CLI's anticipated errors): one line."""
+    rec = write_recording(clean, tmp_path / "rec")
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    code = main(["calibrate", "imu", str(rec), "--out", str(folder)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and "Traceback" not in err[0], err
+
+
+# --- regressions from the issue -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("online", [False, True])
+def test_ship_with_a_constant_gyro_bias_smooths(online):
+    """The project's own simulator writes ``gyroscope_random_walk: 0.0`` for a constant bias; the bias segments
+    were tied with a zero sigma ("Indeterminate linear system (b1)").  Now one bias: finite attitudes, the roll
+    within the accelerometer's tilt accuracy of the truth."""
+    from selfcal.pipelines.ship import smooth_ship
+    from selfcal.sim.ship import ShipScenario
+    sc = ShipScenario(kind="calm", duration_s=60.0, seed=2, gyro_bias_walk_deg_h_sqrt_h=0.0, lever_arm_m=(0, 0, 0))
+    rec = sc.perturbed_measurements(5)
+    assert rec.sensors["imu0"].meta["gyroscope_random_walk"] == 0.0
+    estimate = smooth_ship(rec, online=online)
+    assert np.all(np.isfinite(estimate.roll)) and np.all(np.isfinite(estimate.gyro_bias))
+    roll_true = sc.motion.euler(estimate.t_s)[0][0]
+    assert np.degrees(np.sqrt(np.mean((estimate.roll - roll_true) ** 2))) < 1.0  # the tilt sensor's sigma floor
+
+
+def test_a_zero_playback_speed_is_a_usage_error(capsys):
+    """Was a ZeroDivisionError traceback."""
+    code = main(["track", "--system", "ship", "--replay", "nowhere", "--realtime", "--speed", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1 and "must be a number > 0" in err[0], err
