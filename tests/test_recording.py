@@ -86,9 +86,15 @@ def test_round_trip_is_exact(tmp_path):
     assert np.array_equal(back.sensors["tracker0"].values["x"], tracker.values["x"])
     assert back.sensors["tracker0"].units == {"x": "m", "y": "m"}
 
-    view = back.imu("imu0")
     assert back.imu_names() == ["imu0"]
-    assert np.array_equal(view.gyro_rad_s, gyro) and np.array_equal(view.accel_m_s2, accel)
+    assert np.array_equal(np.column_stack([s.values[c] for c in GYRO_COLUMNS]), gyro)
+    assert np.array_equal(np.column_stack([s.values[c] for c in ACCEL_COLUMNS]), accel)
+    # the stored bits round-trip; as a measurement (the estimators' view) a gyro reading 1.8e308 rad/s is refused
+    with pytest.raises(RecordingError, match="beyond any sensor's range"):
+        back.imu("imu0")
+    view = read_recording(write_recording(Recording(None, {"imu0": imu_sensor(
+        "imu0", t_ns, np.where(np.abs(gyro) > 1e3, 0.0, gyro), accel + [0.0, 0.0, 9.81],
+        channels={"temperature": (temperature, "degC")}, meta={"rate_hz": 100.0})}), tmp_path / "plausible")).imu("imu0")
     assert list(view.channels) == ["temperature"] and view.channel_units == {"temperature": "degC"}
     assert view.rate_hz == 100.0
     assert read_truth(out) == {"accel_bias": [0.1, 0.2, 0.3], "seed": 7}
@@ -102,7 +108,9 @@ def test_round_trip_is_exact(tmp_path):
 
 def test_unknown_columns_are_channels(tmp_path):
     header = IMU_HEADER + ",temperature [degC],supply_voltage [V],my weird channel [counts]"
-    body = [r + f",{20 + i},3.3,{i}" for i, r in enumerate(rows(4))]
+    # a dead (constant) IMU channel is refused by the measurement view: give the gyro its noise
+    body = [f"{T0_NS + i * 10_000_000},{0.001 + 1e-5 * i},{-0.002 + 1e-5 * i},{0.003 - 1e-5 * i},{0.1 + 1e-4 * i},"
+            f"{-0.2 - 1e-4 * i},{9.81 + 1e-4 * i},{20 + i},3.3,{i}" for i in range(4)]
     rec_dir, _ = write_csv(tmp_path, header, body)
     view = read_recording(rec_dir).imu("imu0")
     assert view.channel_units == {"temperature": "degC", "supply_voltage": "V", "my weird channel": "counts"}

@@ -1,0 +1,170 @@
+"""The open-world audit beyond the IMU: recall, size coverage and false findings of every hidden-effect suite of
+the qc, encoder, ship and scan tests, over seeds the tests do not use.
+
+Per suite and seed one simulated recording hides one effect (or none), the audit runs blind; counted: the
+effect named as expected (catalog name, or ``unlisted`` with the expected driver and form), its size within 3
+reported sigma of the truth, and every other finding (a false finding; nulls: every finding).  No baseline: the
+patents' methods have no audit (the ratio column is empty).  Usage:
+
+    .venv/bin/python benchmarks/audit_open_world_systems.py [--quick] [--seeds 20] [--systems qc,encoder]
+        [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import _schema
+from selfcal.audit.engine import run_audit
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # scan_helpers (the tests' recording path)
+
+G = 9.80665
+
+
+def _within(value, sigma, truth) -> bool:
+    return bool(np.all(np.abs(np.asarray(value, float) - np.asarray(truth, float)) < 3 * np.asarray(sigma, float)))
+
+
+# --- qc: one sphere in several LiDAR scenes -------------------------------------------------------------------
+
+def qc_case(suite: str, seed: int):
+    from selfcal.audit.qc import SphereScansAudit
+    from selfcal.graphs import qc as gq
+    from selfcal.sim.qc import LidarSphereScenes
+    effects = {"null": {}, "scatter_null": {"scene_radius_sigma_m": 0.002}, "radius": {"radius_m": 0.305},
+               "range_offset": {"range_offset_m": 0.03}, "range_slope": {"radius_slope": -0.01},
+               "incidence": {"incidence_error_m": 0.01}}[suite]
+    sim = LidarSphereScenes(**effects)
+    scans = gq.scans_of("lidar0", [gq.scene_of(p, t_s=float(i)) for i, p in enumerate(sim.scenes(seed))], 0.3)
+    expected = {"null": None, "scatter_null": None, "radius": ("sphere_radius",),
+                "range_offset": ("range_offset",), "range_slope": ("unlisted", "range", ("poly1", "poly2", "poly3")),
+                "incidence": ("unlisted", "incidence", ("poly1", "poly2", "poly3"))}[suite]
+    checks = {"radius": lambda f: _within(f["estimate"]["dR_m"], f["std"]["dR_m"], 0.005),
+              "range_offset": lambda f: _within(f["estimate"]["b_m"], f["std"]["b_m"], 0.03),
+              "range_slope": lambda f: _within(f["estimate"]["coefficients"][0][0], f["std"]["coefficients"][0][0],
+                                               -0.01)}
+    # the scatter null's mean radius is a real offset of those scenes (tests/test_audit_qc.py)
+    allowed = ("sphere_radius",) if suite in ("scatter_null", "range_slope") else ()
+    return SphereScansAudit(scans), expected, checks.get(suite), allowed
+
+
+# --- encoder: diode-array images ------------------------------------------------------------------------------
+
+def encoder_case(suite: str, seed: int):
+    from selfcal.pipelines import encoder as pe
+    from selfcal.sim.encoder import EncoderScenario
+    tiny = dict(l=5, n_diodes=64, n_positions=24, cells_per_image=12.0)
+    c = 0.05 if suite == "compression" else 0.0
+    sc = EncoderScenario(seed=seed, response_compression=c, **tiny)
+    rec, _ = sc.perturbed_measurements(seed)
+    system = pe.audit_system(rec, frames={"array0": sc.perturbed_frames(seed)})
+    if suite == "null":
+        return system, None, None, ()
+    return (system, ("unlisted", "signal", ("poly2", "poly3")),
+            lambda f: _within(f["estimate"]["coefficients"][1][0], f["std"]["coefficients"][1][0], -c / sc.adc_max), ())
+
+
+# --- ship: attitude from gyro and accelerometer tilt ----------------------------------------------------------
+
+def ship_case(suite: str, seed: int):
+    from selfcal.audit.ship import ShipAudit
+    from selfcal.pipelines.ship import ship_inputs
+    from selfcal.sim.ship import ShipScenario
+    if suite == "heading":
+        kind, duration, bias = "turning", 300.0, lambda t, e: 0.1 * np.column_stack(
+            [np.cos(e[:, 2]), np.sin(e[:, 2]), 0 * t])
+        expected, check = ("unlisted", "heading", ("harmonic",)), \
+            lambda f: _within(f["estimate"]["amplitude"], f["std"]["amplitude"], [0.1 / G] * 2)
+    elif suite == "roll2":
+        kind, duration, bias = "heave", 120.0, lambda t, e: np.column_stack([0 * t, 5.0 * e[:, 0] ** 2, 0 * t])
+
+        def check(f):
+            q, s = np.array(f["estimate"]["coefficients"][1]), np.array(f["std"]["coefficients"][1])
+            size = np.linalg.norm(q)
+            return _within(size, np.sqrt(np.sum((q / size * s) ** 2)), 5.0 / G)
+        expected = ("unlisted", "roll", ("poly2",))
+    else:
+        kind, duration, bias, expected, check = "heave", 120.0, None, None, None
+    rec = ShipScenario(kind=kind, duration_s=duration, seed=seed, lever_arm_m=(0.0, 0.0, 0.0),
+                       accel_bias_of=bias).perturbed_measurements(100 + seed)
+    return ShipAudit(ship_inputs(rec), keyframe_s=1.0), expected, check, ()
+
+
+# --- scan: stereo + INS with sphere targets ---------------------------------------------------------------------
+
+def scan_case(suite: str, seed: int):
+    from scan_helpers import scan_data
+    from selfcal.audit.scan import ScanAudit
+    from selfcal.pipelines.scan import scan_problem
+    from selfcal.sim.scan import ScanScenario, simulate_scan
+    slope = 0.02 if suite == "range" else 0.0
+    sim = simulate_scan(ScanScenario(length_m=8.0, n_spheres=6, sphere_radius_per_range=slope), seed=seed)
+    system = ScanAudit(scan_problem(scan_data(sim)))
+    if suite == "null":
+        return system, None, None, ()
+    return (system, ("unlisted", "range", ("poly1",)),
+            lambda f: _within(f["estimate"]["coefficients"][0][0], f["std"]["coefficients"][0][0], slope),
+            ("sphere_radius",))
+
+
+SYSTEMS = {"qc": (qc_case, ("radius", "range_offset", "range_slope", "incidence", "null", "scatter_null")),
+           "encoder": (encoder_case, ("compression", "null")),
+           "ship": (ship_case, ("heading", "roll2", "null")),
+           "scan": (scan_case, ("range", "null"))}
+
+
+def matches(finding: dict, expected) -> bool:
+    if expected[0] != "unlisted":
+        return finding["effect"] == expected[0]
+    return finding["effect"] == "unlisted" and finding["driver"] == expected[1] and finding["form"] in expected[2]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    _schema.add_arguments(parser, "audit_open_world_systems")
+    parser.add_argument("--seeds", type=int, default=None, help="recordings per suite (default 20, quick 3)")
+    parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated subset of " + ",".join(SYSTEMS))
+    args = parser.parse_args()
+    n = args.seeds or (3 if args.quick else 20)
+    start = time.perf_counter()
+    rows, table = [], {}
+    for system_name in args.systems.split(","):
+        make, suites = SYSTEMS[system_name]
+        for suite in suites:
+            named = sized = checked = false = 0
+            seconds = 0.0
+            for seed in range(2000, 2000 + n):
+                system, expected, check, allowed = make(suite, seed)
+                t0 = time.perf_counter()
+                findings = run_audit(system).to_json()["findings"]
+                seconds += time.perf_counter() - t0
+                hits = [f for f in findings if expected and matches(f, expected)]
+                named += bool(hits)
+                false += sum(1 for f in findings if f not in hits and f["effect"] not in allowed)
+                if hits and check is not None:
+                    checked += 1
+                    sized += bool(check(hits[0]))
+            label = f"{system_name}/{suite}"
+            entry = {"false_per_recording": false / n, "audit_s_per_recording": seconds / n}
+            if suite not in ("null", "scatter_null"):
+                entry["recall"] = named / n
+                rows.append(_schema.row(f"{label}: recall", "fraction", named / n, None, better="higher"))
+            if checked:
+                entry["size_within_3_sigma"] = sized / checked
+                rows.append(_schema.row(f"{label}: size within 3 sigma", "fraction", sized / checked, None,
+                                        better="higher"))
+            rows.append(_schema.row(f"{label}: false findings per recording", "count", false / n, None,
+                                    better="lower"))
+            table[label] = entry
+            print(f"{label:24s} " + "  ".join(f"{k} {v:.2f}" for k, v in entry.items()), flush=True)
+    _schema.write(args.json, "audit_open_world_systems", "audit", args.quick, time.perf_counter() - start, rows,
+                  extra={"seeds": n, "suites": table})
+
+
+if __name__ == "__main__":
+    main()
