@@ -426,7 +426,8 @@ def frame_signal(s_diodes, edge_alpha_rad, weights, beta_rad, geometry, aperture
     d_alpha = np.zeros((n, s_e.size))
     cols = np.broadcast_to(np.arange(s_e.size)[:, None], idx.shape)
     d_alpha[flat, cols[valid]] = (d_se * proj.ds_dalpha[:, None])[valid]
-    scatter = lambda v: np.bincount(flat, weights=v[valid], minlength=n)  # noqa: E731
+    # float even for a frame with no edge in its window (bincount of nothing returns int zeros)
+    scatter = lambda v: np.bincount(flat, weights=v[valid], minlength=n).astype(float)  # noqa: E731
     jac = FrameJacobians(
         d_alpha=d_alpha,
         d_beta=scatter(d_se * proj.ds_dbeta[:, None]),
