@@ -258,3 +258,26 @@ def test_cli_record_from_a_virtual_can_bus(tmp_path):
     incl = read_recording(tmp_path / "rec").sensors["incl0"]
     assert incl.t_ns.size == 20 and (np.diff(incl.t_ns) == 10_000_000).all()
     assert incl.units == {"roll": "rad", "pitch": "rad"}
+
+
+def test_can_clock_stepping_back_or_resetting_is_reanchored_and_counted():
+    """Issue 16: a counter that steps back 1 us (or a sensor reset) is not a wrap: the host clock, which moved a
+    few ms, does not show the 71.6 min a wrap would mean.  Time stays monotone and near the host's, the event is
+    counted; a genuine wrap (host time moving with it) is still unwrapped."""
+    source = CanInclinometerSource(bus=can.Bus(interface="virtual", channel="selfcal_test_reset"), node_id=5)
+    try:
+        def frame(t_us, host_s):
+            return can.Message(arbitration_id=0x185, data=encode_inclinometer_frame(0.0, 0.0, t_us),
+                               is_extended_id=False, timestamp=host_s)
+        times = [source.handle(frame(t_us, host))[1] for t_us, host in
+                 [(5_000_000, 100.000), (5_010_000, 100.010), (5_009_999, 100.020),  # 1 us back
+                  (7, 100.030),  # reset to zero
+                  (17, 100.040)]]
+        assert source.stats.reanchored == 2
+        assert np.all(np.diff(times) > 0)
+        assert abs(times[-1] * 1e-9 - 100.040) < 0.02  # near the host's clock, not 4294.97 s ahead
+        wrap = CanInclinometerSource(bus=source.bus, node_id=5)
+        t_wrap = [wrap.handle(frame(t_us, host))[1] for t_us, host in [(2**32 - 5000, 50.0), (5000, 50.01)]]
+        assert wrap.stats.reanchored == 0 and t_wrap[1] - t_wrap[0] == 10_000_000
+    finally:
+        source.bus.shutdown()

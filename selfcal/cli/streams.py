@@ -37,9 +37,9 @@ def open_stream(args, max_samples=None):
 
 def print_stream_stats(stream) -> None:
     for s in stream.stats():
-        if s.malformed or s.late or s.ignored:
+        if s.malformed or s.late or s.ignored or s.reanchored:
             print(f"{s.name}: {s.samples} samples, {s.malformed} malformed skipped, {s.late} late dropped, "
-                  f"{s.ignored} foreign frames ignored")
+                  f"{s.ignored} foreign frames ignored, {s.reanchored} clock re-anchorings")
 
 
 def record_arguments(p) -> None:

@@ -79,6 +79,7 @@ class StreamStats:
     malformed: int = 0
     ignored: int = 0
     late: int = 0  # dropped by a merger because it arrived after samples with later timestamps were released
+    reanchored: int = 0  # sensor clock stepped back or reset: time re-anchored to the host clock
     _last_warning_s: float = field(default=-math.inf, repr=False)
     _suppressed: int = field(default=0, repr=False)
 
@@ -298,7 +299,11 @@ class CanInclinometerSource:
 
     Time: the frame's 32-bit microsecond counter is unwrapped and anchored to the host receive time of the first
     frame, ``t_ns = t_host_first_ns + (t_sensor_us - t_sensor_first_us) * 1000``: the sensor clock keeps the
-    spacing (no bus jitter), the host clock gives the epoch.
+    spacing (no bus jitter), the host clock gives the epoch.  A wrap is a modular step the host clock agrees
+    with; a step the host clock does not show (more than ``REANCHOR_SLACK_S`` beyond the host's elapsed time: the
+    counter stepped back, or the sensor reset) re-anchors the time to the host's receive time, never earlier than
+    the previous sample, and is counted (``stats.reanchored``): a 1 us step back read as a wrap had thrown every
+    later sample 4294.97 s into the future.
 
     Parameters
     ----------
@@ -329,6 +334,10 @@ class CanInclinometerSource:
         self._first_us = 0
         self._unwrapped_us = 0
         self._last_raw_us: int | None = None
+        self._last_host_s = 0.0
+        self._last_t_ns = 0
+
+    REANCHOR_SLACK_S = 1.0  # host receive times jitter by milliseconds; a wrap's step matches them within this
 
     def handle(self, msg) -> Sample | None:
         """Turn one received ``can.Message`` into a sample (None if it is not ours or is malformed)."""
@@ -340,14 +349,22 @@ class CanInclinometerSource:
         except ValueError as err:
             self.stats.bad(str(err))
             return None
-        if self._last_raw_us is None:
-            host = msg.timestamp if msg.timestamp else time.time()
-            self._anchor_ns, self._first_us, self._unwrapped_us = int(round(host * 1e9)), t_us, t_us
+        host = msg.timestamp if msg.timestamp else time.time()
+        step_us = (t_us - self._last_raw_us) & 0xFFFFFFFF if self._last_raw_us is not None else None
+        if step_us is not None and step_us * 1e-6 > host - self._last_host_s + self.REANCHOR_SLACK_S:
+            self.stats.reanchored += 1
+            log.warning("%s: sensor clock stepped back or reset (%d us -> %d us); time re-anchored to the host",
+                        self.stats.name, self._last_raw_us, t_us)
+            step_us = None
+        if step_us is None:
+            anchor = max(int(round(host * 1e9)), self._last_t_ns + 1000)
+            self._anchor_ns, self._first_us, self._unwrapped_us = anchor, t_us, t_us
         else:
-            self._unwrapped_us += (t_us - self._last_raw_us) & 0xFFFFFFFF  # modular step: survives the wrap
-        self._last_raw_us = t_us
+            self._unwrapped_us += step_us  # modular step: survives the wrap
+        self._last_raw_us, self._last_host_s = t_us, host
         self.stats.samples += 1
         t_ns = self._anchor_ns + (self._unwrapped_us - self._first_us) * 1000
+        self._last_t_ns = t_ns
         return self.sensor, t_ns, {"roll": roll, "pitch": pitch}
 
     def samples(self, stop: threading.Event | None = None) -> Iterator[Sample]:
