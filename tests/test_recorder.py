@@ -161,3 +161,34 @@ def test_cli_record_from_a_replay_then_appends(tmp_path, capsys):
 def test_cli_record_without_source_is_a_one_line_error(tmp_path, capsys):
     assert main(["record", str(tmp_path / "out")]) == 1
     assert "no source" in capsys.readouterr().err
+
+
+class _Source:
+    """A live source for the merger: ``n`` samples 1 ms apart as fast as it can, then silence until stopped."""
+
+    def __init__(self, n: int):
+        from selfcal.io.streams import StreamStats
+        self.n, self.stats = n, StreamStats("fake")
+
+    def samples(self, stop):
+        for k in range(self.n):
+            self.stats.samples += 1
+            yield "incl0", 1_000_000_000 + k * 1_000_000, {"roll": 0.001 * k, "pitch": 0.0}
+        while not stop.is_set():
+            stop.wait(0.01)
+
+
+@pytest.mark.parametrize("n", [0, 200])
+def test_duration_ends_a_silent_stream_and_keeps_the_reorder_window(tmp_path, n):
+    """Issue 16: ``record --duration`` never ended on a silent port, and every live run lost the samples its
+    50 ms reordering window held (190 of 200).  Now the duration stops the stream itself and the merger's
+    flush is written: all n samples, in a bounded time."""
+    import threading
+    import time
+    from selfcal.io.streams import merge_live
+    stop = threading.Event()
+    source = _Source(n)
+    started = time.monotonic()
+    counts = record_stream(merge_live([source], 0.05, stop), tmp_path / "rec", duration_s=0.5, stop=stop)
+    assert time.monotonic() - started < 3.0
+    assert counts.get("incl0", {"written": 0})["written"] == n

@@ -52,7 +52,8 @@ def record(args) -> None:
     from selfcal.io.recorder import record_stream
     stream = open_stream(args)
     try:
-        counts = record_stream(stream.samples, Path(args.out), duration_s=args.duration, max_samples=args.max_samples)
+        counts = record_stream(stream.samples, Path(args.out), duration_s=args.duration, max_samples=args.max_samples,
+                               stop=stream.stop)
     finally:
         stream.close()
     for name, c in counts.items():

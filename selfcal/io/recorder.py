@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -209,21 +210,35 @@ def _prepare_append(path: Path, header: str) -> tuple[list[str], int | None, int
 
 
 def record_stream(samples, folder, duration_s: float | None = None, max_samples: int | None = None,
-                  clock=time.monotonic, **recorder_options) -> dict[str, dict[str, int]]:
+                  clock=time.monotonic, stop: threading.Event | None = None,
+                  **recorder_options) -> dict[str, dict[str, int]]:
     """Write ``samples`` into ``folder`` until they end, ``duration_s`` passes or ``max_samples`` are written.
 
-    Returns the per-sensor counters (written, dropped, repaired_bytes).  Interrupting (Ctrl-C) is a normal end:
-    the files are flushed and closed.
+    With the stream's ``stop`` event, the duration ends the stream even when no sample comes (a silent port), and
+    the stream is then read to its end: a live merger flushes the samples its reordering window still holds
+    (breaking out of the loop had thrown them away).  Returns the per-sensor counters (written, dropped,
+    repaired_bytes).  Interrupting (Ctrl-C) is a normal end: the files are flushed and closed.
     """
     start = clock()
     n = 0
+    timer = None
+    if stop is not None and duration_s is not None:
+        timer = threading.Timer(duration_s, stop.set)
+        timer.daemon = True
+        timer.start()
     with Recorder(Path(folder), **recorder_options) as rec:
         try:
             for sensor, t_ns, values in samples:
                 n += rec.write(sensor, t_ns, values)
-                if (max_samples is not None and n >= max_samples) or \
-                        (duration_s is not None and clock() - start >= duration_s):
+                if max_samples is not None and n >= max_samples:
                     break
+                if duration_s is not None and clock() - start >= duration_s:
+                    if stop is None:
+                        break
+                    stop.set()  # the stream ends once it has flushed what it holds
         except KeyboardInterrupt:
             log.info("interrupted: closing the recording")
+        finally:
+            if timer is not None:
+                timer.cancel()
         return rec.counts()
