@@ -95,3 +95,18 @@ def test_accelerometer_bias_quadratic_in_roll_is_unlisted_not_a_gyro_scale():
     size = np.linalg.norm(quadratic)
     size_sigma = np.sqrt(np.sum((quadratic / size * sigma) ** 2))  # first order, components' sigmas
     assert abs(size - c / G) < 3 * size_sigma, (size, size_sigma, c / G)
+
+
+def test_generic_terms_have_keys_of_their_own():
+    """A term next to the speed log's scale (symbol k0) in one graph: the terms' keys collided with it and the
+    library search of a turning voyage crashed ("key k0 already exists")."""
+    from selfcal.audit.engine import generic_candidate
+    from selfcal.audit.terms import terms_for
+    rec = ShipScenario(kind="turning", duration_s=60.0, seed=3, lever_arm_m=(0.0, 0.0, 0.0)).perturbed_measurements(103)
+    system = ShipAudit(ship_inputs(rec), keyframe_s=1.0)
+    speed = next(c for c in system.candidates() if c.effect == "speed_log_scale")
+    fit = system.fit((speed,))
+    coordinates = system.term_coordinates(fit)[("imu0", "tilt")]
+    term = next(t for t in terms_for(coordinates) if t.form == "poly1")
+    graph, values, groups = system.extend_all(fit, [generic_candidate(term, "imu0", "tilt", "rad")])
+    assert len(groups) == 1 and all(values.exists(key) for key, _ in groups[0])

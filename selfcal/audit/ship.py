@@ -186,7 +186,7 @@ class ShipAudit:
     def _keys_of(self, term: library.Term) -> list[int]:
         if term not in self._term_keys:
             start = sum(len(k) for k in self._term_keys.values())
-            self._term_keys[term] = [gtsam.symbol("k", start + j) for j in range(term.dof())]
+            self._term_keys[term] = [gtsam.symbol("u", start + j) for j in range(term.dof())]
         return self._term_keys[term]
 
     def _term_columns(self, effects) -> list[tuple[int, np.ndarray]]:
