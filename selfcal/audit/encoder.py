@@ -68,7 +68,7 @@ class EncoderAudit:
         temps = [a.temperature_degC for a in problem.arrays if a.temperature_degC is not None]
         self.temperature_varies = bool(temps) and float(np.ptp(np.concatenate(temps))) > 0.5
         self._drivers, self._rows = self._driver_values(base[2], base[3], base[0])
-        self._term_keys: dict[library.Term, list[int]] = {}
+        self._keys_of = library.TermKeys("u")
 
     # -- the generic term library ----------------------------------------------------------------------------
     def _driver_values(self, graph, layout, values):
@@ -97,12 +97,6 @@ class EncoderAudit:
 
     def catalog_term(self, candidate: Candidate) -> None:
         return None  # no catalog effect of the encoder is a signal offset in one driver
-
-    def _keys_of(self, term: library.Term) -> list[int]:
-        if term not in self._term_keys:
-            start = sum(len(k) for k in self._term_keys.values())
-            self._term_keys[term] = [gtsam.symbol("u", start + j) for j in range(term.dof())]
-        return self._term_keys[term]
 
     def _array(self, candidate: Candidate) -> int:
         return [a.name for a in self.problem.arrays].index(candidate.sensor)
@@ -181,15 +175,8 @@ class EncoderAudit:
         return Fit(tuple(effects), graph, values, self._families(graph, layout, values),
                    {"model": model, "fold": fold, "frames": frames, "edges": edges, "layout": layout})
 
-    def extend(self, fit: Fit, candidate: Candidate):
-        graph, values, groups = self._extended(fit, [candidate])
-        return graph, values, groups[0]
-
-    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+    def extend_all(self, fit: Fit, candidates):
         """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
-        return self._extended(fit, candidates)
-
-    def _extended(self, fit: Fit, candidates):
         effects = fit.effects + tuple(candidates)
         model = self._model(effects)
         values = gtsam.Values(fit.values)

@@ -164,7 +164,7 @@ class AuditSystem(Protocol):
 
     def extend(self, fit: Fit, candidate: Candidate):
         """(graph with the candidate added, fit's values + the candidate's nominal ones, new columns) for
-        :func:`score_test`."""
+        :func:`score_test`.  Optional where the adapter has ``extend_all`` (:func:`extend_one`)."""
 
     def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
         """Residual families of the held-out part of ``fold``, predicted with ``fit`` (trained on the rest)."""
@@ -178,6 +178,15 @@ class AuditSystem(Protocol):
     #       (the candidates' ``term`` then reaches fit / extend / heldout / estimate)
     #   plausible(candidate, estimate) -> str | None: why an estimate is physically implausible
     #   catalog_term(candidate) -> (driver, form) | None: the library term a catalog effect is identical to
+
+
+def extend_one(system, fit: Fit, candidate: Candidate):
+    """``system.extend``, or for an adapter that only has ``extend_all`` (one graph for many candidates), that with
+    the one candidate: (graph, values, new columns)."""
+    if hasattr(system, "extend"):
+        return system.extend(fit, candidate)
+    graph, values, groups = system.extend_all(fit, [candidate])
+    return graph, values, groups[0]
 
 
 def score_test(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
@@ -435,7 +444,7 @@ class _Search:
     def score(self, candidate: Candidate, fit: Fit) -> Trial:
         """Score test of one candidate against ``fit``, corrected for residuals correlated in time (a library
         term's with the collinearity rule of :func:`score_tests`)."""
-        graph, values, columns = self.system.extend(fit, candidate)
+        graph, values, columns = extend_one(self.system, fit, candidate)
         if candidate.term is None:
             f_stat, dof, dof_den = score_test(graph, values, columns)
         else:
@@ -683,7 +692,7 @@ def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, prev
     for trial in trials:
         if trial.candidate == accepted or trial.p_value >= threshold:
             continue
-        f_stat, dof, dof_den = score_test(*system.extend(accepted_fit, trial.candidate))
+        f_stat, dof, dof_den = score_test(*extend_one(system, accepted_fit, trial.candidate))
         if stats.f.sf(f_stat, dof, dof_den) < threshold:
             continue  # still significant on top of the accepted effect: a separate effect, not a rival
         alternative = system.fit(previous_fit.effects + (trial.candidate,))

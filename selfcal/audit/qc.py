@@ -72,7 +72,7 @@ class SphereScansAudit:
         for name in sorted(set().union(*(s.channels for s in scenes))):
             drivers[name] = self._per_return([s.channels.get(name, np.nan) for s in scenes])
         self._drivers = drivers
-        self._term_keys: dict[library.Term, list[int]] = {}
+        self._keys_of = library.TermKeys("k")
 
     def _per_return(self, per_scene) -> np.ndarray:
         return np.repeat(np.asarray(per_scene, dtype=float), np.diff(self._offsets))
@@ -95,12 +95,6 @@ class SphereScansAudit:
 
     def catalog_term(self, candidate: Candidate) -> None:
         return None  # neither catalog effect is a single library term (dR is the constant the terms leave out)
-
-    def _keys_of(self, term: library.Term) -> list[int]:
-        if term not in self._term_keys:
-            start = sum(len(k) for k in self._term_keys.values())
-            self._term_keys[term] = [gtsam.symbol("k", start + j) for j in range(term.dof())]
-        return self._term_keys[term]
 
     def _term_columns(self, effects, scene_ids) -> list[tuple[int, list[np.ndarray]]]:
         out = []
@@ -141,15 +135,8 @@ class SphereScansAudit:
         return ResidualFamily(self.sensor, "sphere", "m", (physical / sigma)[:, None], physical[:, None], coords,
                               tuple(self.scans.channel_units), ("elevation", "azimuth"))
 
-    def extend(self, fit: Fit, candidate: Candidate):
-        graph, values, groups = self._extended(fit, [candidate])
-        return graph, values, groups[0]
-
-    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+    def extend_all(self, fit: Fit, candidates):
         """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
-        return self._extended(fit, candidates)
-
-    def _extended(self, fit: Fit, candidates):
         effects = fit.effects + tuple(candidates)
         scene_ids = fit.context["scene_ids"]
         graph, values = gq.build(self.scans, self._model(effects), scene_ids, self._term_columns(effects, scene_ids))

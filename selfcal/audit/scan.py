@@ -71,7 +71,7 @@ class ScanAudit:
         self._index = {id(o): i for i, o in enumerate(problem.observations)}
         self._offsets = np.cumsum([0] + [len(o.sigmas_m) for o in problem.observations])
         self._drivers: dict[str, np.ndarray] | None = None
-        self._term_keys: dict[library.Term, list[int]] = {}
+        self._keys_of = library.TermKeys("u")
 
     def candidates(self) -> list[Candidate]:
         return [Candidate(e, self.sensor, MEANINGS[e], "sphere", COORDINATE[e]) for e in MEANINGS]
@@ -115,15 +115,8 @@ class ScanAudit:
         return ResidualFamily(self.sensor, "sphere", "m", (e / sig)[:, None], e[:, None],
                               {"time_s": t, "speed": speed, "angular rate": rate, "point": np.arange(len(e), dtype=float)})
 
-    def extend(self, fit: Fit, candidate: Candidate):
-        graph, values, groups = self._extended(fit, [candidate])
-        return graph, values, groups[0]
-
-    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+    def extend_all(self, fit: Fit, candidates):
         """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
-        return self._extended(fit, candidates)
-
-    def _extended(self, fit: Fit, candidates):
         effects = fit.effects + tuple(candidates)
         problem = fit.context["problem"]
         graph, _ = gs.build_collapsed(problem, self._model(effects), self._term_columns(effects, problem))
@@ -165,12 +158,6 @@ class ScanAudit:
 
     def catalog_term(self, candidate: Candidate) -> None:
         return None  # no catalog effect of the scan is a radius varying with one driver
-
-    def _keys_of(self, term: library.Term) -> list[int]:
-        if term not in self._term_keys:
-            start = sum(len(k) for k in self._term_keys.values())
-            self._term_keys[term] = [gtsam.symbol("u", start + j) for j in range(term.dof())]
-        return self._term_keys[term]
 
     def _term_columns(self, effects, problem) -> dict[int, list[tuple[int, np.ndarray]]]:
         """Per observation of ``problem`` (its index there), the radius terms among ``effects``."""

@@ -70,7 +70,7 @@ class ShipAudit:
         self._halves = [np.flatnonzero(t < half), np.flatnonzero(t >= half)]
         self.has_speed = inputs.speed_m_s is not None
         self._drivers: dict[str, np.ndarray] | None = None
-        self._term_keys: dict[library.Term, list[int]] = {}
+        self._keys_of = library.TermKeys("u")
 
     def candidates(self) -> list[Candidate]:
         out = [Candidate("lever_arm", self.sensor, MEANINGS["lever_arm"], "tilt", "angular acceleration"),
@@ -122,15 +122,8 @@ class ShipAudit:
         values = optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE)
         return Fit(tuple(effects), graph, values, self._families(values, builder, fold), {"fold": fold})
 
-    def extend(self, fit: Fit, candidate: Candidate):
-        graph, values, groups = self._extended(fit, [candidate])
-        return graph, values, groups[0]
-
-    def extend_all(self, fit: Fit, candidates: list[Candidate]):
+    def extend_all(self, fit: Fit, candidates):
         """One graph holding every candidate (new variables at zero): (graph, values, new columns each)."""
-        return self._extended(fit, candidates)
-
-    def _extended(self, fit: Fit, candidates):
         graph, start, _ = self._build(fit.effects + tuple(candidates), fit.context["fold"])
         values = gtsam.Values(fit.values)
         groups = []
@@ -182,12 +175,6 @@ class ShipAudit:
 
     def catalog_term(self, candidate: Candidate) -> None:
         return None  # no catalog effect of the ship is a single tilt offset in one driver
-
-    def _keys_of(self, term: library.Term) -> list[int]:
-        if term not in self._term_keys:
-            start = sum(len(k) for k in self._term_keys.values())
-            self._term_keys[term] = [gtsam.symbol("u", start + j) for j in range(term.dof())]
-        return self._term_keys[term]
 
     def _term_columns(self, effects) -> list[tuple[int, np.ndarray]]:
         out = []

@@ -170,6 +170,21 @@ class Term:
 
 # --- candidate terms of one coordinate set --------------------------------------------------------------------
 
+class TermKeys:
+    """The graph keys of the terms an adapter fits: one per basis column, ``<symbol><n>`` numbered in the order the
+    terms are first asked for (``symbol`` a letter the system's own graph does not use)."""
+
+    def __init__(self, symbol: str = "u"):
+        self.symbol, self._keys = symbol, {}
+
+    def __call__(self, term: Term) -> list[int]:
+        import gtsam
+        if term not in self._keys:
+            start = sum(len(k) for k in self._keys.values())
+            self._keys[term] = [gtsam.symbol(self.symbol, start + j) for j in range(term.dof())]
+        return self._keys[term]
+
+
 def terms_for(coordinates: list[Coordinate], residual_for_frequency: np.ndarray | None = None,
               time: np.ndarray | None = None, products: bool = True) -> list[Term]:
     """Every term the library offers for these drivers.
