@@ -186,3 +186,18 @@ def test_shipped_recording_is_the_upstream_scans_and_audits(tmp_path):
     assert main(["audit", str(SHIPPED), "--system", "qc", "--json", str(out)]) in (0, None)
     contract = json.loads(out.read_text())
     assert contract["system"] == "qc" and "lidar0/sphere" in contract["remaining"]
+
+
+@pytest.mark.parametrize("radius", ["abc", -0.3, 0])
+def test_a_nominal_radius_that_is_no_radius_is_refused_in_one_line(tmp_path, capsys, radius):
+    import shutil
+    import yaml
+    rec = tmp_path / "rec"
+    shutil.copytree(SHIPPED, rec)
+    meta_file = rec / "lidar0" / "sensor.yaml"
+    meta = yaml.safe_load(meta_file.read_text())
+    meta["sphere_radius_m"] = radius
+    meta_file.write_text(yaml.safe_dump(meta))
+    assert main(["audit", str(rec), "--system", "qc", "--json", str(tmp_path / "a.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sphere_radius_m" in err[0] and not (tmp_path / "a.json").exists(), err

@@ -45,7 +45,10 @@ def read_sphere_scans(recording: Recording, sensors: list[str] | None = None) ->
     where = f"{recording.path if recording.path is not None else '<recording>'}/{name}"
     if "sphere_radius_m" not in sensor.meta:
         raise RecordingError(f"{where}/sensor.yaml: missing 'sphere_radius_m' (the target's nominal radius)")
-    nominal = float(sensor.meta["sphere_radius_m"])
+    nominal = sensor.meta["sphere_radius_m"]
+    if isinstance(nominal, bool) or not isinstance(nominal, (int, float)) or not 0 < nominal < float("inf"):
+        raise RecordingError(f"{where}/sensor.yaml: sphere_radius_m is {nominal!r}; it must be a radius in m > 0")
+    nominal = float(nominal)
     spec = QCSpec.from_dict({"spheres": {"nominal_radius_m": nominal, "count": 1},
                              **(sensor.meta.get("qc_spec") or {})}, f"{where}/sensor.yaml")
     pattern = sensor.meta.get("file_pattern", "{timestamp}.ply")
