@@ -144,3 +144,130 @@ def test_a_zero_playback_speed_is_a_usage_error(capsys):
     code = main(["track", "--system", "ship", "--replay", "nowhere", "--realtime", "--speed", "0"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code != 0 and len(err) == 1 and "must be a number > 0" in err[0], err
+
+
+# --- tracker and inclinometer against the IMU they ride with (issue 16, item 1) ----------------------------------
+
+def scaled(rec, sensor, columns, factor, about_mean=False):
+    s = rec.sensors[sensor]
+    values = {c: ((v - v.mean()) * factor + v.mean() if about_mean else v * factor) if c in columns else v
+              for c, v in s.values.items()}
+    return replace(rec, sensors={**rec.sensors, sensor: replace(s, values=values)})
+
+
+@pytest.fixture(scope="module", params=[(11, False), (12, True)], ids=["tbm", "tbm-with-faults"])
+def tbm(request):
+    from selfcal.sim.tracker import TrackerScenario
+    seed, faults = request.param
+    return TrackerScenario(duration_s=60.0, seed=seed, faults=faults).measurements()
+
+
+def test_a_clean_tracker_run_passes_even_with_sensor_faults(tbm):
+    """Faults (jumps, stuck values) are the estimator's to gate, not a unit error: the checks must let them in."""
+    from selfcal.pipelines.tracker import check_sensors
+    check_sensors(tbm)
+
+
+@pytest.mark.parametrize("sensor, columns, factor, words", [
+    ("tracker0", ("x", "y", "z"), 1000.0, "in mm"),
+    ("incl0", ("roll", "pitch"), 180 / np.pi, "in degrees"),
+    ("imu0", ACCEL_COLUMNS, 1 / STANDARD_GRAVITY_M_S2, "in g")])
+def test_tracker_sensors_in_other_units_are_refused(tbm, tmp_path, capsys, sensor, columns, factor, words):
+    """Issue: tracker in mm went 30 km off, inclinometer in degrees 82 deg off, both exit 0."""
+    rec = write_recording(scaled(tbm, sensor, columns, factor), tmp_path / "rec")
+    out = tmp_path / "poses.tum"
+    assert main(["smooth", "tracker", str(rec), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0] and sensor in err[0] and "Traceback" not in err[0], err
+    assert not out.exists()
+
+
+def test_tracker_motion_in_cm_is_refused_from_its_accelerations_alone():
+    """Positions whose motion (not offset) is in cm, within the tracker's range so that the range says nothing: a
+    calibration run steering the target by 5-20 cm over 5-20 s periods (about 0.05-0.3 m/s^2) reads as 5-30 m/s^2,
+    far beyond what the accelerometer feels (0.1 g allowance)."""
+    from selfcal.pipelines.tracker import check_sensors
+    from selfcal.sim.tracker import TrackerScenario
+    rec = TrackerScenario(duration_s=60.0, seed=4, steer_position_m=(0.05, 0.2), steer_position_period_s=(5.0, 20.0),
+                          steer_position_axes=(1.0, 1.0, 1.0)).measurements()
+    check_sensors(rec)
+    with pytest.raises(RecordingError, match="accelerate unlike the IMU"):
+        check_sensors(scaled(rec, "tracker0", ("x", "y", "z"), 100.0, about_mean=True))
+
+
+# --- encoder frames the tool cannot vouch for (issue 16, item 3) -------------------------------------------------
+
+@pytest.fixture(scope="module")
+def encoder_recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("enc") / "rec"
+    assert main(["simulate", "encoder", "--out", str(path), "--positions", "40", "--diodes", "128", "--code-bits",
+                 "6", "--cells-per-image", "14", "--seed", "4"]) == 0
+    return path
+
+
+def with_frames(source: Path, target: Path, frames: np.ndarray) -> Path:
+    import shutil
+    shutil.copytree(source, target)
+    np.save(target / "array0" / "frames.npy", frames)
+    return target
+
+
+@pytest.mark.parametrize("mutation, words", [
+    ("one frame copied 40 times", "repeat another exactly"),
+    ("cast to int8", "int8 holds at most 127"),
+    ("cast to int8 and back to float", "outside the ADC"),
+    ("counts x 16 (12-bit read as 16-bit)", "outside the ADC")])
+def test_degenerate_or_wrapped_encoder_frames_are_refused(encoder_recording, tmp_path, capsys, mutation, words):
+    """Issue: 60 copies of one frame gave "graduation error RMS 6.132 urad", frames cast to int8 24.3 urad against
+    6.5, both exit 0.  Now one line, exit 1, no calibration written."""
+    frames = np.load(encoder_recording / "array0" / "frames.npy")
+    mutated_frames = {"one frame copied 40 times": np.repeat(frames[:1], len(frames), axis=0),
+                      "cast to int8": frames.astype(np.int8),
+                      "cast to int8 and back to float": frames.astype(np.int8).astype(float),
+                      "counts x 16 (12-bit read as 16-bit)": frames * 16.0}[mutation]
+    rec = with_frames(encoder_recording, tmp_path / "rec", mutated_frames)
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", "encoder", str(rec), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0] and "Traceback" not in err[0], err
+    assert not out.exists()
+
+
+# --- outputs of one run: both or neither, also on a full disk and on SIGTERM (issue 16, item 4) -------------------
+
+def test_a_full_disk_while_writing_the_pair_leaves_neither_and_no_temporaries(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from selfcal.io import atomic
+    calls = []
+
+    def fsync_then_full(fd):
+        calls.append(fd)
+        if len(calls) == 2:  # the second file of the pair hits a full disk
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", fsync_then_full)
+    (tmp_path / "a.json").write_text("old")
+    with pytest.raises(OSError, match="No space"):
+        atomic.atomic_write_texts({tmp_path / "a.json": "{}", tmp_path / "a.html": "<html/>"})
+    assert sorted(os.listdir(tmp_path)) == ["a.json"] and (tmp_path / "a.json").read_text() == "old"
+
+
+def test_sigterm_during_an_audit_writes_neither_file_and_no_temporaries(tmp_path):
+    """A killed audit left the JSON without the HTML; a killed scan hidden temporary files."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = subprocess.Popen([sys.executable, "-m", "selfcal.cli.main", "audit", str(DATA / "xsens_mti_multiposition"),
+                             "--system", "imu", "--json", str(out / "a.json"), "--report", str(out / "a.html")],
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(6.0)  # imports and the first fits; the whole audit takes about a minute
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 143 and err.strip() == "selfcal: terminated", err
+    assert os.listdir(out) == []

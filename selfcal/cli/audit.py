@@ -20,22 +20,26 @@ def audit_arguments(p) -> None:
 
 
 def audit(args) -> None:
-    from selfcal.io.atomic import atomic_write_text
+    from selfcal.io.atomic import atomic_write_texts
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.audit import audit_recording
     if not args.json and not args.report:
         raise UsageError("nothing to write: give --json OUT.json and/or --report OUT.html")
+    if args.json and args.report and output(args.json).resolve() == output(args.report).resolve():
+        raise UsageError("--json and --report name the same file: give two paths")
     rec = read_recording(args.recording)
     sensors = [name for name in (args.imu, args.imu1) if name] or None
     run = audit_recording(rec, args.system, args.base, sensors, progress=log.info)
     contract = run.to_json()
     print_summary(contract)
+    texts = {}
     if args.json:
-        atomic_write_text(output(args.json), json.dumps(contract, indent=1, default=plain) + "\n")
-        log.info("wrote %s", args.json)
+        texts[output(args.json)] = json.dumps(contract, indent=1, default=plain) + "\n"
     if args.report:
-        from selfcal.audit.report import write_report
-        write_report(run.result, output(args.report), run.report_extras(str(args.recording)))
+        from selfcal.audit.report import render_report
+        texts[output(args.report)] = render_report(run.result, run.report_extras(str(args.recording)))
+    atomic_write_texts(texts)  # the JSON and the HTML of one audit: both or neither
+    if args.report:
         print(f"report: {args.report}")
 
 

@@ -85,8 +85,20 @@ def check_outputs_apart_from_inputs(args) -> None:
                                      "write it somewhere else")
 
 
+class Terminated(BaseException):
+    """SIGTERM as an exception, so that every ``finally`` and atomic writer removes its temporaries on the way out
+    (a killed audit or scan left hidden temporary files)."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> int:
+    import signal
+
     from selfcal.core.errors import USER_ERRORS
+    previous = signal.signal(signal.SIGTERM, _terminate) if threading_is_main() else None
     try:
         args = build_parser().parse_args(argv)
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
@@ -103,7 +115,19 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("selfcal: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("selfcal: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return code or 0
+
+
+def threading_is_main() -> bool:
+    """Signal handlers can only be set from the main thread (tests may call main() from another)."""
+    import threading
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

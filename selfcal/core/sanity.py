@@ -14,17 +14,33 @@ Numbers (why these and not others):
   integrates along the way (the path, ``sum |w| dt``: no wrap) is at least that angle and, for a hand or a
   turntable, a few times it at most; a median ratio above 15 is a gyro in deg/s (57.3), below 0.5 one that
   under-reads by a unit (mrad/s, or deg/s data converted twice).
+* gyro, no rests (a ship in waves): the tilt oscillation at 1-30 s periods integrated from the gyro against the
+  one the accelerometer's gravity direction shows, where they correlate (> 0.7): the same ratio bounds.
 * ranges: |a| beyond 2000 m/s^2 (200 g, above any navigation or consumer MEMS range) or |w| beyond
   100 rad/s (5700 deg/s) is no measurement (a 1e300 placeholder, a mis-parsed column).
 * a column with one value throughout is a dead channel.
 * time: a gap longer than ``max(20 sample periods, 1 s)`` is data missing, not a slow logger (the bursty USB
   loggers of the shipped MPU-6050 recordings stay below 0.1 s).
+
+Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func:`inclinometer_problems`):
+
+* laser tracker: no laser tracker measures beyond 200 m (the longest-range ones, 80 m radius); and the
+  acceleration its positions show must be what the accelerometer feels: ``|a_W + g e_z| = |f_B|`` whatever the
+  attitude (W is gravity-aligned, z up).  Both sides are taken over the same 0.5 s windows (a quadratic fit to
+  the positions, the mean specific force); the RMS of their difference may not exceed 0.1 g plus five times the
+  noise the tracker's stated sigma puts on the fitted acceleration: 0.1 g covers a lever arm of 0.25 m turning at
+  2 rad/s and any accelerometer bias.  Positions in mm turn every millimetre per second squared into a metre.
+* inclinometer: its roll and pitch and the accelerometer's (from the same 1 s mean specific force) differ only by
+  the mounting (a few degrees at most) and by dynamic accelerations (zero mean); a median difference over 10 deg
+  is a reading in other units (degrees: 57 x the angle) or another frame.  Where the tilt varies well beyond
+  the noise (the slope's own sigma ten times smaller than its distance from 1), the inclinometer's gain on the
+  accelerometer's tilt must lie in [0.5, 2]: a scale error is a few per cent, degrees are 57.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
+from selfcal.core.inertial import STANDARD_GRAVITY_M_S2, tilt_from_specific_force
 from selfcal.core.static_intervals import StaticDetectionError, detect_static_intervals
 
 ACCEL_RANGE_G = (0.5, 2.0)
@@ -33,6 +49,10 @@ MAX_RATE_RAD_S = 100.0
 GYRO_PATH_RATIO = (0.5, 15.0)
 MIN_ROTATION_DEG = 20.0
 GAP_PERIODS, GAP_FLOOR_S = 20.0, 1.0
+MAX_TRACKER_RANGE_M = 200.0
+TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
+MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
+GAIN_RANGE = (0.5, 2.0)
 
 
 def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x", "a_y", "a_z")) -> list[str]:
@@ -57,7 +77,7 @@ def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x
     out += _gap(t)
     out += _accel_units(t, a)
     if not out:
-        out += _gyro_units(t, w, a)
+        out += _gyro_units(t, w, a) or _gyro_tilt_gain(t, w, a)
     return out
 
 
@@ -88,6 +108,47 @@ def _accel_units(t: np.ndarray, a: np.ndarray) -> list[str]:
             f"({g_ratio:.3g} g, not 1 g): {hint}"]
 
 
+def _smoothed(x: np.ndarray, n: int) -> np.ndarray:
+    """Moving mean over n samples (same length; the ends use what there is)."""
+    c = np.vstack([np.zeros(x.shape[1]), np.cumsum(x, axis=0)])
+    i = np.arange(len(x))
+    lo, hi = np.clip(i - n // 2, 0, len(x)), np.clip(i + n // 2 + 1, 0, len(x))
+    return (c[hi] - c[lo]) / (hi - lo)[:, None]
+
+
+def _gyro_tilt_gain(t: np.ndarray, w: np.ndarray, a: np.ndarray) -> list[str]:
+    """Without rests (a ship in waves, a vehicle): the tilt oscillation the accelerometer's gravity direction
+    shows against the gyro's integral about the same axes, both band-passed to 1-30 s periods where gravity
+    dominates the specific force.  Gain 1 within the lateral accelerations of the motion (a factor 2 either way);
+    deg/s gives 1/57.  Judged only where the two agree in shape (correlation above 0.7) and the tilt moves."""
+    if t.size < 100:
+        return []
+    dt = float(np.median(np.diff(t)))
+    n_fast, n_slow = max(1, int(round(1.0 / dt))), int(round(30.0 / dt))
+    if t.size < 2 * n_slow:
+        return []
+    roll, pitch = tilt_from_specific_force(a)
+    tilt_accel = np.column_stack([roll, pitch])
+    tilt_gyro = np.cumsum(w[:, :2] * np.gradient(t)[:, None], axis=0)
+    band = lambda x: _smoothed(x, n_fast) - _smoothed(x, n_slow)  # noqa: E731
+    x, y = band(tilt_gyro), band(tilt_accel)
+    ratios = []
+    for k in range(2):
+        var_x = float(x[:, k] @ x[:, k])
+        if var_x == 0.0 or float(np.std(y[:, k])) < np.radians(0.2):  # the tilt must move to be judged
+            continue
+        gain = float(x[:, k] @ y[:, k]) / var_x
+        corr = float(x[:, k] @ y[:, k]) / np.sqrt(var_x * float(y[:, k] @ y[:, k]))
+        if corr > 0.7:
+            ratios.append(1.0 / gain)
+    if not ratios or all(GYRO_PATH_RATIO[0] <= r <= GYRO_PATH_RATIO[1] for r in ratios):
+        return []
+    ratio = float(np.median(ratios))
+    hint = "gyro in deg/s? multiply by pi/180" if 30.0 < ratio < 120.0 else "check the gyro's unit (rad/s expected)"
+    return [f"the gyro integrates {ratio:.3g} x the tilt oscillation the accelerometer's gravity direction shows "
+            f"(1 expected): {hint}"]
+
+
 def _gyro_units(t: np.ndarray, w: np.ndarray, a: np.ndarray) -> list[str]:
     """Integrated rotation path between consecutive static rests against their gravity directions' angle."""
     try:
@@ -113,3 +174,98 @@ def _gyro_units(t: np.ndarray, w: np.ndarray, a: np.ndarray) -> list[str]:
     return [f"between {len(ratios) + 1} rests the gyro integrates {ratio:.3g} x the rotation the accelerometer's "
             f"gravity direction shows (a rotation path is 1-3 x it): {hint}"]
 
+
+
+def _window_means(t_s: np.ndarray, x: np.ndarray, centres_s: np.ndarray, half_width_s: float) -> np.ndarray:
+    """Mean of the rows of ``x`` (N, k) within +-half_width of each centre (NaN where none), by cumulative sums."""
+    c = np.vstack([np.zeros(x.shape[1]), np.cumsum(x, axis=0)])
+    lo = np.searchsorted(t_s, centres_s - half_width_s)
+    hi = np.searchsorted(t_s, centres_s + half_width_s)
+    n = (hi - lo)[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, (c[hi] - c[lo]) / n, np.nan)
+
+
+def tracker_problems(t_tracker_s, p_W_m, t_imu_s, f_B_m_s2, tracker_W_m=(0.0, 0.0, 0.0),
+                     position_sigma_m: float = 0.5e-3, gravity_m_s2: float = STANDARD_GRAVITY_M_S2) -> list[str]:
+    """One line per physical problem of laser-tracker positions (W, m) against the IMU on the same body
+    (``t_*_s`` on one clock, s): the range, and the acceleration the positions show against the one the
+    accelerometer feels (module docstring)."""
+    t = np.asarray(t_tracker_s, dtype=float)
+    p = np.asarray(p_W_m, dtype=float)
+    distance = float(np.median(np.linalg.norm(p - np.asarray(tracker_W_m, dtype=float), axis=1)))
+    if distance > MAX_TRACKER_RANGE_M:
+        hint = "positions in mm? multiply by 0.001" if distance / 1000.0 <= MAX_TRACKER_RANGE_M else "check its unit (m)"
+        return [f"the target is {distance:.4g} m from the tracker (median), beyond any laser tracker's range "
+                f"({MAX_TRACKER_RANGE_M:g} m): {hint}"]
+    n = int(round(TRACKER_WINDOW_S / float(np.median(np.diff(t))))) | 1 if t.size > 1 else 0
+    if n < 5 or t.size < 3 * n:
+        return []
+    from scipy.signal import savgol_filter  # the quadratic fit over each window, second derivative
+    dt = float(np.median(np.diff(t)))
+    a_W = savgol_filter(p, n, 2, deriv=2, delta=dt, axis=0)[n // 2:-(n // 2)]
+    centres = t[n // 2:-(n // 2)]
+    f_mean = _window_means(np.asarray(t_imu_s, dtype=float), np.asarray(f_B_m_s2, dtype=float), centres, n * dt / 2)
+    ok = np.isfinite(f_mean[:, 0])
+    if ok.sum() < n:
+        return []
+    seen = np.linalg.norm(a_W[ok] + np.array([0.0, 0.0, gravity_m_s2]), axis=1)
+    felt = np.linalg.norm(f_mean[ok], axis=1)
+    mismatch = float(np.sqrt(np.mean((seen - felt) ** 2)))
+    # noise of the fitted acceleration: the tracker sigma through the filter's second-derivative weights
+    weights = savgol_filter(np.eye(n)[n // 2], n, 2, deriv=2, delta=dt, mode="constant")
+    allowed = TRACKER_ALLOWANCE_G * gravity_m_s2 + TRACKER_NOISE_SIGMAS * position_sigma_m * float(
+        np.linalg.norm(weights))
+    if mismatch <= allowed:
+        return []
+    return [f"its positions accelerate unlike the IMU it rides with (RMS of |a + g| - |f| = {mismatch:.3g} m/s^2, "
+            f"allowed {allowed:.2g}): positions in mm or another unit? they must be in m, on the IMU's clock"]
+
+
+def inclinometer_problems(t_s, roll_pitch_rad, accel_roll_pitch_rad) -> list[str]:
+    """One line if an inclinometer's (roll, pitch) (N, 2) at times ``t_s`` disagree with the accelerometer's tilt
+    at the same times (N, 2; :func:`accelerometer_tilt_at`): by more than a mounting offset, or, where the tilt
+    varies enough to tell, by a gain other than 1 (a reading in degrees has 57)."""
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(roll_pitch_rad, dtype=float)
+    ref = np.asarray(accel_roll_pitch_rad, dtype=float)
+    ok = np.all(np.isfinite(ref), axis=1)
+    if ok.sum() < 3:
+        return []
+    t, x, ref = t[ok], x[ok], ref[ok]
+    wrap = lambda d: np.abs(np.angle(np.exp(1j * d)))  # noqa: E731
+    diff = np.degrees(np.median(wrap(x - ref), axis=0))
+    gains = [_gain(t, x[:, k], ref[:, k]) for k in range(2)]
+    if np.all(diff <= MAX_TILT_DISAGREEMENT_DEG) and all(GAIN_RANGE[0] <= g <= GAIN_RANGE[1] for g in gains):
+        return []
+    in_degrees = np.degrees(np.median(wrap(np.radians(x) - ref), axis=0))
+    hint = ("in degrees? multiply by pi/180" if np.all(in_degrees <= MAX_TILT_DISAGREEMENT_DEG) else
+            "check its unit (rad) and its axes (roll about x, pitch about y of the IMU)")
+    return [f"its roll and pitch differ from the accelerometer's by {diff[0]:.3g} and {diff[1]:.3g} deg (median; "
+            f"mounting allows a few), gain {gains[0]:.3g} and {gains[1]:.3g} (1 expected): {hint}"]
+
+
+def _gain(t: np.ndarray, x: np.ndarray, ref: np.ndarray) -> float:
+    """Slope of ``x`` on ``ref`` (with an offset), over 1 s means so that neighbours are independent; 1.0 when
+    the reference's variation is under ten times the slope's own uncertainty could tell (nothing to judge)."""
+    bins = np.floor((t - t[0]) / TILT_WINDOW_S).astype(int)
+    count = np.bincount(bins)
+    keep = count > 0
+    xm, rm = (np.bincount(bins, v)[keep] / count[keep] for v in (x, ref))
+    if xm.size < 10:
+        return 1.0
+    rc, xc = rm - rm.mean(), xm - xm.mean()
+    var = float(rc @ rc)
+    if var == 0.0:
+        return 1.0
+    slope = float(rc @ xc) / var
+    resid = xc - slope * rc
+    slope_sigma = float(np.sqrt(resid @ resid / (xm.size - 2) / var))
+    return slope if abs(slope - 1.0) > 10.0 * slope_sigma else 1.0
+
+
+def accelerometer_tilt_at(t_s, t_imu_s, f_B_m_s2) -> np.ndarray:
+    """(N, 2) roll and pitch of the 1 s mean specific force around each time (NaN where no IMU sample)."""
+    f = _window_means(np.asarray(t_imu_s, dtype=float), np.asarray(f_B_m_s2, dtype=float),
+                      np.asarray(t_s, dtype=float), TILT_WINDOW_S / 2)
+    return np.column_stack(tilt_from_specific_force(f))

@@ -70,6 +70,26 @@ def atomic_write_text(path, text: str, encoding: str = "utf-8") -> Path:
     return atomic_write_bytes(path, text.encode(encoding))
 
 
+def atomic_write_texts(texts: dict, encoding: str = "utf-8") -> list[Path]:
+    """Write several files as one: every text goes to its temporary first (fsync'd), and only when all are complete
+    are they renamed onto their paths, back to back; a failure before (a full disk, a signal) removes every
+    temporary and leaves every path as it was (an audit's JSON and HTML: both or neither).
+
+    Parameters
+    ----------
+    texts : dict
+        path -> text.
+    """
+    with contextlib.ExitStack() as stack:
+        for path, text in texts.items():
+            tmp = stack.enter_context(atomic_file(path))
+            with open(tmp, "wb") as f:
+                f.write(text.encode(encoding))
+                f.flush()
+                os.fsync(f.fileno())
+    return [Path(p) for p in texts]
+
+
 @contextlib.contextmanager
 def atomic_directory(path, overwrite: bool = False) -> Iterator[Path]:
     """Build a folder under a temporary sibling name; rename it to ``path`` only if the block succeeds.

@@ -99,10 +99,12 @@ def read_encoder_arrays(rec: Recording, frames: dict[str, np.ndarray] | None = N
                                         f"{s.t_ns.size} rows")
         if not np.issubdtype(data.dtype, np.number):
             raise EncoderRecordingError(f"{where}/frames.npy: dtype {data.dtype} is not numeric")
+        _check_counts(data, meta, f"{where}/frames.npy")
         data = data.astype(float)
         if not np.isfinite(data).all():
             J = int(np.argmax(~np.isfinite(data).all(axis=1)))
             raise EncoderRecordingError(f"{where}/frames.npy: frame {J} holds NaN or inf")
+        _check_independent_exposures(data, meta, f"{where}/frames.npy")
         out.append(EncoderArray(name, s.t_ns, data, meta, dict(s.values)))
     l = {int(a.meta["code_length_l"]) for a in out}
     if len(l) != 1:
@@ -110,6 +112,38 @@ def read_encoder_arrays(rec: Recording, frames: dict[str, np.ndarray] | None = N
     if len(out) > 1 and any(a.t_ns.size != out[0].t_ns.size or np.any(a.t_ns != out[0].t_ns) for a in out[1:]):
         raise EncoderRecordingError(f"{_where(rec, '')}: arrays must record the same positions (same timestamps)")
     return out
+
+
+def _check_counts(data: np.ndarray, meta: dict, where: str) -> None:
+    """ADC counts lie in [0, adc_max] up to the noise: a type that cannot hold the ADC's range, or counts beyond it
+    (a signed cast wraps 200 to -56), are refused, never calibrated (a cast to int8 gave 24 urad against 6.5)."""
+    if "adc_max" not in meta:
+        return
+    adc_max = float(meta["adc_max"])
+    if np.issubdtype(data.dtype, np.integer) and np.iinfo(data.dtype).max < adc_max:
+        raise EncoderRecordingError(f"{where}: {data.dtype} holds at most {np.iinfo(data.dtype).max} counts, the "
+                                    f"ADC reaches adc_max {adc_max:g}: the frames were cast and wrapped; write the "
+                                    "original counts")
+    margin = 5.0 * float(meta.get("noise_sigma_counts", 1.0))
+    with np.errstate(invalid="ignore"):
+        outside = (data < -margin) | (data > adc_max + margin)
+    if outside.any():
+        J, i = np.argwhere(outside)[0]
+        raise EncoderRecordingError(f"{where}: frame {J} diode {i} reads {data[J, i]:g} counts, outside the ADC's "
+                                    f"[0, {adc_max:g}] (+-5 noise sigma): wrapped or mis-scaled counts")
+
+
+def _check_independent_exposures(data: np.ndarray, meta: dict, where: str) -> None:
+    """Two exposures of a noisy array never agree on every diode (with sigma >= 1 count, a repeat of all n
+    diodes has probability below 0.4^n): identical frames are a repeated buffer, not new measurements, and
+    counting them would shrink every sigma (60 copies of one frame gave a 6 urad graduation error)."""
+    if float(meta.get("noise_sigma_counts", 1.0)) < 1.0 or len(data) < 2:
+        return  # noise below one count: equal frames can be honest repeats
+    _, first, counts = np.unique(data, axis=0, return_index=True, return_counts=True)
+    if counts.max() > 1:
+        J = int(first[np.argmax(counts)])
+        raise EncoderRecordingError(f"{where}: {int((counts - 1).sum())} frame(s) repeat another exactly (frame {J} "
+                                    f"{counts.max()} times): a repeated buffer, not new exposures; remove the copies")
 
 
 @dataclass

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
+from selfcal.core.sanity import accelerometer_tilt_at, inclinometer_problems, tracker_problems
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
 from selfcal.io.recording import GYRO_COLUMNS, ACCEL_COLUMNS, Recording, RecordingError
@@ -108,8 +110,31 @@ def recording_events(recording: Recording):
         if missing:
             raise RecordingError(f"{recording.path}/{name}: missing columns {', '.join(missing)}")
         streams.append(_sensor_events(name, rank, s))
+    check_sensors(recording)
     for t, _, name, values in heapq.merge(*streams, key=lambda e: (e[0], e[1])):
         yield name, t, values
+
+
+def check_sensors(recording: Recording) -> None:
+    """Refuse (RecordingError, one line) a recording whose sensors the tool cannot vouch for: the IMU's own gates
+    (:meth:`Recording.imu`), tracker positions and inclinometer angles against the IMU (:mod:`selfcal.core.sanity`)."""
+    imu = recording.imu("imu0")
+    t0_ns = int(imu.t_ns[0])
+    t_imu = (imu.t_ns - t0_ns) * 1e-9
+    tr = recording.sensors["tracker0"]
+    meta = tr.meta or {}
+    problems = tracker_problems((tr.t_ns - t0_ns) * 1e-9, np.column_stack([tr.values[c] for c in ("x", "y", "z")]),
+                                t_imu, imu.accel_m_s2, meta.get("tracker_W_m", (0.0, 0.0, 0.0)),
+                                float(meta.get("position_sigma_m", SensorNoise().tracker_sigma_m)),
+                                float(imu.meta.get("gravity_m_s2", STANDARD_GRAVITY_M_S2)))
+    if problems:
+        raise RecordingError(f"{recording.path}/tracker0: {problems[0]}")
+    inc = recording.sensors["incl0"]
+    t_inc = (inc.t_ns - t0_ns) * 1e-9
+    problems = inclinometer_problems(t_inc, np.column_stack([inc.values["roll"], inc.values["pitch"]]),
+                                     accelerometer_tilt_at(t_inc, t_imu, imu.accel_m_s2))
+    if problems:
+        raise RecordingError(f"{recording.path}/incl0: {problems[0]}")
 
 
 def _sensor_events(name, rank, sensor):
@@ -171,8 +196,24 @@ def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = Tru
         position = np.array([o["position"] for o in outputs])
         quats = np.array([o["quaternion"] for o in outputs])
         cov = np.array([o["covariance"] for o in outputs]) if outputs[0]["covariance"] is not None else None
-    return TrackerResult(t_ns, position, quats, cov, faults, decisions, mode, time.perf_counter() - start,
-                         dict(tracker.estimator.counts))
+    counts = dict(tracker.estimator.counts)
+    check_agreement(recording, counts)
+    return TrackerResult(t_ns, position, quats, cov, faults, decisions, mode, time.perf_counter() - start, counts)
+
+
+MAX_REJECTED_FRACTION = 0.25
+
+
+def check_agreement(recording: Recording, counts: dict) -> None:
+    """Refuse a run whose sensors disagree with the model throughout.  The chi-square gate rejects a good
+    measurement with probability ``gate_alpha`` (1e-4) and the default fault schedule of the simulator rejects
+    under 5 %; a quarter of all measurements rejected is no fault to gate out but a model that does not hold (a
+    gyro in deg/s on a near-still TBM, where no sanity check can see it, rejects 45 %)."""
+    judged = counts.get("accepted", 0) + counts.get("rejected", 0)
+    if judged and counts.get("rejected", 0) > MAX_REJECTED_FRACTION * judged:
+        raise RecordingError(f"{recording.path}: {counts['rejected']} of {judged} measurements failed the chi-square "
+                             "gate: the IMU and the other sensors disagree throughout, not a fault to gate out; check "
+                             "units (gyro in rad/s?) and the sensor.yaml noise")
 
 
 def patent_baseline(recording: Recording, use_fading: bool = True, use_fault_detection: bool = True):
