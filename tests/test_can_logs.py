@@ -316,3 +316,40 @@ def test_dbc_errors_are_one_line(tmp_path, capsys):
                    "DBC unit 'deg' cannot be read as w_RS_S_x [rad s^-1]")
     one_line_error(capsys, ["track", "--can-log", str(log), "--dbc", str(tmp_path / "good.dbc"),
                             "--out-tum", str(tmp_path / "p.tum")], "--dbc FILE and --dbc-map MAP.yaml go together")
+
+
+def test_cli_record_from_a_live_bus_through_a_dbc(tmp_path):
+    """``record --can CH --dbc --dbc-map``: the live bus decoded through the DBC (deg -> rad), foreign IDs ignored."""
+    import threading
+    (tmp_path / "tpdo.dbc").write_text(TPDO_DBC)
+    (tmp_path / "map.yaml").write_text(yaml.safe_dump(TPDO_MAP, sort_keys=False))
+    message = load_dbc(tmp_path / "tpdo.dbc").get_message_by_name("INCL_TPDO1")
+    channel = "selfcal_test_dbc_live"
+    done = threading.Event()
+
+    def node():  # the inclinometer, and a heartbeat, until the recorder has what it wants
+        tx = can.Bus(interface="virtual", channel=channel)
+        k = 0
+        try:
+            while not done.is_set() and k < 2000:
+                tx.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=message.encode(
+                    {"INCL_Roll": 0.5, "INCL_Pitch": -1.25, "INCL_Time": 1000 * k})))
+                tx.send(can.Message(arbitration_id=0x701, is_extended_id=False, data=bytes([5])))
+                k += 1
+                done.wait(0.002)
+        finally:
+            tx.shutdown()
+
+    th = threading.Thread(target=node, daemon=True)
+    th.start()
+    try:
+        assert main(["record", str(tmp_path / "rec"), "--can", channel, "--can-interface", "virtual",
+                     "--dbc", str(tmp_path / "tpdo.dbc"), "--dbc-map", str(tmp_path / "map.yaml"),
+                     "--max-samples", "10"]) == 0
+    finally:
+        done.set()
+        th.join(5)
+    incl = read_recording(tmp_path / "rec").sensors["incl0"]
+    assert incl.t_ns.size == 10 and incl.units == {"roll": "rad", "pitch": "rad"}
+    np.testing.assert_allclose(incl.values["roll"], math.radians(0.5), rtol=1e-14)
+    np.testing.assert_allclose(incl.values["pitch"], math.radians(-1.25), rtol=1e-14)
