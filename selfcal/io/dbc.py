@@ -206,6 +206,8 @@ class DbcDecoder:
 
 def dbc_decoder(dbc_path, map_path, name: str) -> DbcDecoder:
     """A decoder from a DBC file and its YAML map (one-line errors for either)."""
+    if map_path is None:
+        raise DbcError(f"{dbc_path}: a DBC needs its map (which signal is which column; docs/streams.md)")
     return DbcDecoder(load_dbc(dbc_path), load_dbc_map(map_path), name=name)
 
 
