@@ -353,3 +353,18 @@ def test_cli_record_from_a_live_bus_through_a_dbc(tmp_path):
     assert incl.t_ns.size == 10 and incl.units == {"roll": "rad", "pitch": "rad"}
     np.testing.assert_allclose(incl.values["roll"], math.radians(0.5), rtol=1e-14)
     np.testing.assert_allclose(incl.values["pitch"], math.radians(-1.25), rtol=1e-14)
+
+
+def test_realtime_paces_a_log_by_its_timestamps():
+    """``--realtime --speed 2``: samples 0.5 s apart in the log come 0.25 s apart on the (fake) wall clock."""
+    from selfcal.io.canlog import paced
+    now = [0.0]
+    released = []
+
+    def sleep(s):
+        now[0] += s
+
+    samples = [("incl0", 1_700_000_000_000_000_000 + k * 500_000_000, {}) for k in range(4)]
+    for sample in paced(samples, speed=2.0, clock=lambda: now[0], sleep=sleep):
+        released.append(now[0])
+    assert released == [0.0, 0.25, 0.5, 0.75]
