@@ -1,4 +1,5 @@
-"""``selfcal record`` and ``selfcal track``: live streams (serial, CAN) or a replayed recording (docs/streams.md)."""
+"""``selfcal record`` and ``selfcal track``: live streams (serial, CAN), a replayed recording or CAN log
+(docs/streams.md)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -21,22 +22,39 @@ def stream_arguments(p) -> None:
                          help="CANopen node id (TPDO1 COB-ID 0x180+node), default 1")
     sources.add_argument("--can-sensor", default="incl0", help="sensor name of the CAN inclinometer (default incl0)")
     sources.add_argument("--replay", metavar="REC", help="replay a recording (as fast as possible unless --realtime)")
-    sources.add_argument("--realtime", action="store_true", help="replay at the recording's own pace")
+    sources.add_argument("--can-log", metavar="FILE", help="replay a CAN log: .asc, .blf (Vector) or .log (candump "
+                                                          "-L), as fast as possible unless --realtime; alone or "
+                                                          "with --replay")
+    sources.add_argument("--dbc", metavar="FILE", help="decode the CAN frames (--can or --can-log) through this DBC "
+                                                      "instead of the fixed inclinometer TPDO1; needs --dbc-map")
+    sources.add_argument("--dbc-map", metavar="MAP.yaml", help="which DBC signal is which column: "
+                                                              "'sensor: {column: signal}' (docs/streams.md)")
+    sources.add_argument("--realtime", action="store_true", help="replay at the recording's (or log's) own pace")
     sources.add_argument("--speed", type=positive_float, default=1.0, help="with --realtime: playback speed factor")
     sources.add_argument("--max-samples", type=int, help="stop after this many samples")
 
 
 def open_stream(args, max_samples=None):
     from selfcal.io.streams import open_stream as open_sources
-    if not (args.serial or args.can or args.replay):
-        raise UsageError("no source: give --serial PORT[:BAUD][,TYPE=sensor...], --can CHANNEL and/or --replay REC")
+    if not (args.serial or args.can or args.replay or args.can_log):
+        raise UsageError("no source: give --serial PORT[:BAUD][,TYPE=sensor...], --can CHANNEL, --replay REC "
+                         "and/or --can-log FILE")
+    if (args.dbc is None) != (args.dbc_map is None):
+        raise UsageError("--dbc FILE and --dbc-map MAP.yaml go together (the map says which signal is which column)")
+    if args.dbc and not (args.can or args.can_log):
+        raise UsageError("--dbc decodes CAN frames: give --can CHANNEL or --can-log FILE")
     return open_sources(serial=args.serial, can_channel=args.can, can_interface=args.can_interface,
                         can_node=args.can_node, can_sensor=args.can_sensor, replay_path=args.replay,
-                        realtime=args.realtime, speed=args.speed, max_samples=max_samples)
+                        realtime=args.realtime, speed=args.speed, max_samples=max_samples, can_log=args.can_log,
+                        dbc=args.dbc, dbc_map=args.dbc_map)
 
 
 def print_stream_stats(stream) -> None:
-    for s in stream.stats():
+    for source in stream.sources:
+        if hasattr(source, "summary"):  # a CAN log: frames read, decoded and skipped, always said
+            print(source.summary())
+            continue
+        s = source.stats
         if s.malformed or s.late or s.ignored or s.reanchored:
             print(f"{s.name}: {s.samples} samples, {s.malformed} malformed skipped, {s.late} late dropped, "
                   f"{s.ignored} foreign frames ignored, {s.reanchored} clock re-anchorings")

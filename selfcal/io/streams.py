@@ -536,25 +536,41 @@ class _ReplaySource:
 
 def open_stream(serial: list[str] | None = None, can_channel: str | None = None, can_interface: str = "socketcan",
                 can_node: int = 1, can_sensor: str = "incl0", replay_path=None, realtime: bool = False,
-                speed: float = 1.0, reorder_window_s: float = 0.05, max_samples: int | None = None) -> OpenStream:
+                speed: float = 1.0, reorder_window_s: float = 0.05, max_samples: int | None = None,
+                can_log=None, dbc=None, dbc_map=None) -> OpenStream:
     """Open every source named on a command line and merge them in timestamp order.
 
     A replay alone is merged exactly (it is already sorted); live sources (and a replay mixed with them) go
-    through :func:`merge_live` with its reordering window.
+    through :func:`merge_live` with its reordering window.  A CAN log (``can_log``, :mod:`selfcal.io.canlog`) is a
+    file like a replay: alone or with a replay it is merged exactly, never with live sources.  ``dbc`` and
+    ``dbc_map`` decode the CAN frames (live or logged) through a DBC (:mod:`selfcal.io.dbc`) instead of the fixed
+    inclinometer TPDO1.
     """
     from selfcal.io.recording import read_recording
 
+    if can_log is not None and (serial or can_channel is not None):
+        raise StreamError("--can-log replays a file: it cannot be merged with live --serial/--can sources")
     sources: list = []
     stop = threading.Event()
     try:
         for spec in serial or []:
             port, baud, sensors = parse_serial_spec(spec)
             sources.append(SerialLineSource(port, baud, sensors))
-        if can_channel is not None:
+        if can_channel is not None and dbc is not None:
+            from selfcal.io.dbc import CanDbcSource, dbc_decoder
+            sources.append(CanDbcSource(dbc_decoder(dbc, dbc_map, f"CAN {can_interface}:{can_channel} (DBC)"),
+                                        channel=can_channel, interface=can_interface))
+        elif can_channel is not None:
             sources.append(CanInclinometerSource(channel=can_channel, interface=can_interface, node_id=can_node,
                                                  sensor=can_sensor))
         if replay_path is not None:
-            sources.append(_ReplaySource(read_recording(replay_path), realtime, speed))
+            sources.append(_ReplaySource(read_recording(replay_path), realtime and can_log is None, speed))
+        if can_log is not None:
+            from selfcal.io.canlog import CanLogSource, merge_offline
+            from selfcal.io.dbc import dbc_decoder
+            decoder = dbc_decoder(dbc, dbc_map, "DBC") if dbc is not None else None
+            sources.append(CanLogSource(can_log, decoder, node_id=can_node, sensor=can_sensor))
+            return OpenStream(merge_offline(sources, stop, max_samples, realtime, speed), sources, stop)
     except BaseException:
         for opened in sources:
             if hasattr(opened, "close"):
