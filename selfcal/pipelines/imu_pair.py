@@ -256,7 +256,8 @@ def calibrate_imu_pair_task(recording_path, options: dict) -> dict:
                              time_offset=options.get("time_offset"), lowpass_hz=float(lowpass) or None,
                              gains=options.get("gains", False))
     d = cal.to_dict()
-    for key in ("rotation_convention", "time_offset_convention"):
+    # conventions are no columns; T_imu0_imu1 repeats the rotation and lever arm columns
+    for key in ("rotation_convention", "time_offset_convention", "T_imu0_imu1", "T_imu0_imu1_convention"):
         d.pop(key)
     for gain in d["relative_gain_imu1"].values():
         gain.pop("meaning")
