@@ -311,3 +311,19 @@ def test_no_declared_random_walk_writes_the_bound_and_says_so(imu_exports):
         assert f"{key}: " in text and unit in text
     for unit in ("m s^-2 / sqrt(Hz)", "rad s^-1 / sqrt(Hz)"):
         assert unit in text
+
+
+def test_short_gauss_markov_is_no_random_walk_on_real_xsens_data():
+    # the Xsens MTi's internal filter correlates its accelerometer noise over ~10 ms: the audit accepts a
+    # Gauss-Markov term there, whose short-tau equivalent sigma sqrt(2 / T) (~0.06 m s^-3 / sqrt(Hz)) is no
+    # random walk of the bias; Kalibr's key must not get it
+    from selfcal.audit.noise import noise_audit
+    from selfcal.core.static_intervals import detect_static_intervals
+    data = read_recording(Path(__file__).resolve().parents[1] / "data" / "xsens_mti_multiposition").imu("imu0")
+    start, end = max(detect_static_intervals(data.t_s, data.accel_m_s2), key=lambda run: run[1] - run[0])
+    rest = data.accel_m_s2[start:end]
+    finals = [a.final for a in noise_audit(rest, data.rate_hz, "accel").axes]
+    short = [f for f in finals if f.model == "gauss_markov" and f.params["tau_s"] < 1.0]
+    assert short, [f.model for f in finals]  # the case this test is about is present
+    n = kalibr_noise(rest, data.rate_hz, "accel")
+    assert not n.random_walk_seen

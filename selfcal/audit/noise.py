@@ -609,7 +609,7 @@ class KalibrNoise:
     ``white_density``: N of the white (slope -1/2) line, ``sigma(tau) = N / sqrt(tau)``, i.e. its value at
     tau = 1 s.  ``random_walk``: K of the +1/2 line, ``sigma(tau) = K sqrt(tau / 3)`` (its value at tau = 3 s),
     where :func:`noise_audit` accepts a model with a random walk on that axis (for Gauss-Markov, the short-tau
-    equivalent ``sigma sqrt(2 / T)``); NaN where the curve shows none.  ``random_walk_bound``: the largest K the
+    equivalent ``sigma sqrt(2 / T)``, only when T exceeds the longest tau); NaN where the curve shows none.  ``random_walk_bound``: the largest K the
     curve allows, ``min over tau of sigma_hi(tau) sqrt(3 / tau)`` with ``sigma_hi`` the upper end of the
     one-sigma (68 %) confidence interval: a +1/2 line above it would lie above the measured curve.  ``*_std``:
     1-sigma of the fits (NaN where not available).  Units: those of the samples (m s^-2 or rad s^-1) per
@@ -642,6 +642,10 @@ def kalibr_noise(static_samples, rate_hz: float, quantity: str, sensor: str = "i
         as_array = lambda values: np.array([np.nan if v is None else v for v in values], dtype=float)  # noqa: E731
         white, white_std = as_array(est["white_density"]), as_array(std["white_density"])
         walk, walk_std = as_array(est["random_walk"]), as_array(std["random_walk"])
+        # a Gauss-Markov bias is a random walk only over taus shorter than its correlation time: one that
+        # decorrelates within the curve (an internal filter at 10 ms, a settling transient) is none
+        short_gm = (np.array(est["model"]) == "gauss_markov") & ~(as_array(est["tau_s"]) >= curve.taus_s[-1])
+        walk[short_gm], walk_std[short_gm] = np.nan, np.nan
     else:
         fits = [short_tau_white(curve.axis(i)) for i in range(3)]
         white = np.array([f.params["white_density"] for f in fits])
