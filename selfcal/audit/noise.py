@@ -598,3 +598,60 @@ def noise_audit(static_samples, rate_hz: float, quantity: str, declared_white_de
         log.info("%s %s axis %d: best %s, delta BIC %.1f, held-out %s, accepted %s", sensor, quantity, a.axis,
                  a.best, a.delta_bic, a.predicts_heldout, a.accepted)
     return result
+
+
+# --- noise figures for Kalibr's imu.yaml ----------------------------------------------------------------------------
+
+@dataclass
+class KalibrNoise:
+    """White-noise density N and rate random walk K per axis, read from the Allan analysis, as Kalibr wants them.
+
+    ``white_density``: N of the white (slope -1/2) line, ``sigma(tau) = N / sqrt(tau)``, i.e. its value at
+    tau = 1 s.  ``random_walk``: K of the +1/2 line, ``sigma(tau) = K sqrt(tau / 3)`` (its value at tau = 3 s),
+    where :func:`noise_audit` accepts a model with a random walk on that axis (for Gauss-Markov, the short-tau
+    equivalent ``sigma sqrt(2 / T)``, only when T exceeds the longest tau); NaN where the curve shows none.  ``random_walk_bound``: the largest K the
+    curve allows, ``min over tau of sigma_hi(tau) sqrt(3 / tau)`` with ``sigma_hi`` the upper end of the
+    one-sigma (68 %) confidence interval: a +1/2 line above it would lie above the measured curve.  ``*_std``:
+    1-sigma of the fits (NaN where not available).  Units: those of the samples (m s^-2 or rad s^-1) per
+    sqrt(Hz) for N, per s per sqrt(Hz) for K.
+    """
+
+    quantity: str
+    white_density: np.ndarray
+    white_density_std: np.ndarray
+    random_walk: np.ndarray
+    random_walk_std: np.ndarray
+    random_walk_bound: np.ndarray
+    duration_s: float
+    tau_max_s: float
+
+    @property
+    def random_walk_seen(self) -> bool:
+        return bool(np.any(np.isfinite(self.random_walk)))
+
+
+def kalibr_noise(static_samples, rate_hz: float, quantity: str, sensor: str = "imu0") -> KalibrNoise:
+    """Kalibr's noise figures (per axis) of static samples: :func:`noise_audit` where the series is long enough
+    for it (2000 samples), else the white line alone (:func:`short_tau_white`, no random walk)."""
+    x = np.asarray(static_samples, dtype=float)
+    nan3 = np.full(3, np.nan)
+    curve = allan_curve(x, rate_hz)
+    if len(x) >= 2000:
+        estimate = _finding(noise_audit(x, rate_hz, quantity, sensor=sensor).axes, sensor, quantity)
+        est, std = estimate["estimate"], estimate["std"]
+        as_array = lambda values: np.array([np.nan if v is None else v for v in values], dtype=float)  # noqa: E731
+        white, white_std = as_array(est["white_density"]), as_array(std["white_density"])
+        walk, walk_std = as_array(est["random_walk"]), as_array(std["random_walk"])
+        # a Gauss-Markov bias is a random walk only over taus shorter than its correlation time: one that
+        # decorrelates within the curve (an internal filter at 10 ms, a settling transient) is none
+        short_gm = (np.array(est["model"]) == "gauss_markov") & ~(as_array(est["tau_s"]) >= curve.taus_s[-1])
+        walk[short_gm], walk_std[short_gm] = np.nan, np.nan
+    else:
+        fits = [short_tau_white(curve.axis(i)) for i in range(3)]
+        white = np.array([f.params["white_density"] for f in fits])
+        white_std = np.array([f.std["white_density"] for f in fits])
+        walk, walk_std = nan3, nan3.copy()
+    _, adev_hi = curve.confidence_interval()
+    bound = np.min(adev_hi * np.sqrt(3.0 / curve.taus_s)[:, None], axis=0)
+    return KalibrNoise(quantity, white, white_std, walk, walk_std, bound, len(x) / float(rate_hz),
+                       float(curve.taus_s[-1]))

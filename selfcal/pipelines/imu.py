@@ -87,6 +87,59 @@ def calibrate_imu(recording: Recording, sensor: str, spec: gi.IntrinsicsSpec = g
     return ImuCalibration(sensor, estimate, len(problem.poses), problem.gravity_m_s2, data.meta.get("raw_counts"))
 
 
+# Kalibr's keys of each quantity and the unit of its noise density
+KALIBR_NOISE = {"accel": ("accelerometer_noise_density", "accelerometer_random_walk", "m s^-2", "m s^-3"),
+                "gyro": ("gyroscope_noise_density", "gyroscope_random_walk", "rad s^-1", "rad s^-2")}
+MIN_REST_SAMPLES = 64  # an Allan curve of three octaves, the least the white line is fitted to
+
+
+def kalibr_noise_values(data: ImuData) -> tuple[dict, str | None]:
+    """Kalibr's imu.yaml noise values of one IMU from the Allan analysis of its longest rest, largest axis.
+
+    A random walk the rest is too short to show is taken from sensor.yaml if declared there, else it is the
+    largest value the Allan curve allows (:class:`selfcal.audit.noise.KalibrNoise`).  Returns the values
+    (:class:`selfcal.io.exports.NoiseValue` by key) and, when a random walk was not measured, one line saying so.
+    """
+    from selfcal.audit.noise import kalibr_noise
+    from selfcal.core.static_intervals import detect_static_intervals
+    from selfcal.io.exports import NoiseValue
+    start, end = max(detect_static_intervals(data.t_s, data.accel_m_s2), key=lambda run: run[1] - run[0],
+                     default=(0, 0))
+    if end - start < MIN_REST_SAMPLES:
+        raise SelfcalError(f"{data.name}: no rest of {MIN_REST_SAMPLES} samples or more for the Allan analysis "
+                           "(record the IMU at rest, longer)")
+    values, unseen = {}, []
+    for quantity, samples in (("accel", data.accel_m_s2), ("gyro", data.gyro_rad_s)):
+        density_key, walk_key, unit, walk_unit = KALIBR_NOISE[quantity]
+        n = kalibr_noise(samples[start:end], data.rate_hz, quantity, data.name)
+        axes = lambda a: ", ".join(f"{v:.3e}" for v in a)  # noqa: E731
+        values[density_key] = NoiseValue(float(np.max(n.white_density)), (
+            f"{unit} / sqrt(Hz): N line of the Allan deviation at tau = 1 s, largest axis of x, y, z = "
+            f"{axes(n.white_density)}"))
+        rest = f"{n.duration_s:.0f} s rest, taus to {n.tau_max_s:.3g} s"
+        if n.random_walk_seen:
+            values[walk_key] = NoiseValue(float(np.nanmax(n.random_walk)), (
+                f"{walk_unit} / sqrt(Hz): +1/2 line at tau = 3 s, largest axis of x, y, z = {axes(n.random_walk)} "
+                f"(nan: none seen; {rest})"))
+            continue
+        unseen.append(quantity)
+        bound = float(np.max(n.random_walk_bound))
+        if walk_key in data.meta:
+            values[walk_key] = NoiseValue(float(data.meta[walk_key]), (
+                f"{walk_unit} / sqrt(Hz): NOT MEASURED, the sensor.yaml value; the Allan curve ({rest}) shows no "
+                f"random walk and bounds it by {bound:.3e}"))
+        else:
+            values[walk_key] = NoiseValue(bound, (
+                f"{walk_unit} / sqrt(Hz): NOT MEASURED, an upper bound: the largest +1/2 line under the one-sigma upper "
+                f"end of the Allan curve ({rest})"))
+    note = None
+    if unseen:
+        note = (f"{data.name}: its longest rest ({(end - start) / data.rate_hz:.0f} s) is too short to show the "
+                f"{' and '.join(unseen)} random walk: imu.yaml holds the sensor.yaml value or an upper bound "
+                "(see its comments)")
+    return values, note
+
+
 def audit_system(recording: Recording, base: str, sensors: list[str] | None = None):
     """The audit's view of one IMU (``sensors[0]``, default the first): a static log (one orientation
     throughout: bias and noise) or a multi-position recording (intrinsics)."""

@@ -20,6 +20,7 @@ from selfcal.core.inertial import ImuNoise
 from selfcal.sim.imu import ImuPairScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
 from selfcal.core.solve import DegenerateDataError
+from selfcal.io.exports import homogeneous
 from selfcal.io.recording import Recording, read_recording
 from selfcal.pipelines.imu import _imu_names, nested_list
 from selfcal.pipelines.fleet import flat_columns, register_study, register_task, sensor_option
@@ -46,6 +47,9 @@ class PairCalibration:
             "time_offset_convention": "t_imu0 = t_imu1 + dt",
             "lever_arm_m": nested_list(e.lever_arm_m) if e.lever_arm_m is not None else None,
             "lever_arm_sigma_m": nested_list(e.lever_arm_sigma_m) if e.lever_arm_sigma_m is not None else None,
+            "T_imu0_imu1": homogeneous(e.R_imu0_imu1, np.zeros(3) if e.lever_arm_m is None else e.lever_arm_m),
+            "T_imu0_imu1_convention": "p_imu0 = T p_imu1 (4x4 homogeneous): rotation_imu0_imu1, and imu1's position "
+                                      "in the imu0 frame (lever_arm_m; zero when not estimated)",
             "relative_gain_imu1": {
                 name: {"G": nested_list(G), "S_sigma": nested_list(sigma),
                        "meaning": "v_imu0 = R G v_imu1, G = I + S symmetric: imu1's scale and non-orthogonality"}
@@ -252,7 +256,8 @@ def calibrate_imu_pair_task(recording_path, options: dict) -> dict:
                              time_offset=options.get("time_offset"), lowpass_hz=float(lowpass) or None,
                              gains=options.get("gains", False))
     d = cal.to_dict()
-    for key in ("rotation_convention", "time_offset_convention"):
+    # conventions are no columns; T_imu0_imu1 repeats the rotation and lever arm columns
+    for key in ("rotation_convention", "time_offset_convention", "T_imu0_imu1", "T_imu0_imu1_convention"):
         d.pop(key)
     for gain in d["relative_gain_imu1"].values():
         gain.pop("meaning")

@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from selfcal.graphs import scan as gs
 from selfcal.core.solve import DegenerateDataError
+from selfcal.io.camera import read_camera
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import scan as ms
 from selfcal.core.sphere import SphereNotFoundError, ransac_sphere
@@ -118,8 +119,13 @@ def read_scan(recording: Recording, scan_name: str = "scan0", ins_name: str = "i
     v = ins.values
     q = np.column_stack([v["q_WI_x"], v["q_WI_y"], v["q_WI_z"], v["q_WI_w"]])
     t0 = ins.t_ns[0]
-    cams = tuple(Camera(np.array(c["K"], float), np.array(c["dist"], float), np.array(c["vision_R_cam"], float),
-                        np.array(c["vision_t_cam"], float)) for c in (meta["cameras"]["left"], meta["cameras"]["right"]))
+    cams = []
+    for side in ("left", "right"):
+        c = meta["cameras"][side]
+        intrinsics = read_camera(c, f"{where}/{scan_name}/sensor.yaml cameras.{side}")
+        cams.append(Camera(intrinsics.K, intrinsics.dist, np.array(c["vision_R_cam"], float),
+                           np.array(c["vision_t_cam"], float)))
+    cams = tuple(cams)
     prior = np.array(ins.meta.get("error_term_sigmas", ms.DEFAULT_PRIOR_SIGMAS), float)
     jitter = np.r_[np.full(3, float(ins.meta.get("pose_jitter_rad", 1e-5))),
                    np.full(3, float(ins.meta.get("pose_jitter_m", 5e-5)))]

@@ -19,6 +19,7 @@ from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.core.sanity import accelerometer_tilt_at, inclinometer_problems, tracker_problems
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
+from selfcal.io.camera import read_camera
 from selfcal.io.recording import GYRO_COLUMNS, ACCEL_COLUMNS, Recording, RecordingError
 
 log = logging.getLogger(__name__)
@@ -44,8 +45,10 @@ def noise_from_meta(meta: dict[str, dict]) -> SensorNoise:
         "cam_sigma_px": cam.get("sigma_px")}
     n = replace(n, **{k: float(v) for k, v in updates.items() if v is not None})
     arrays = {"r_P_B": tr.get("lever_arm_prism_m"), "tracker_W": tr.get("tracker_W_m"),
-              "r_C_B": cam.get("lever_arm_camera_m"), "R_B_C": cam.get("R_B_C"),
-              "camera_matrix": cam.get("camera_matrix"), "dist_coeffs": cam.get("dist_coeffs")}
+              "r_C_B": cam.get("lever_arm_camera_m"), "R_B_C": cam.get("R_B_C")}
+    if any(key in cam for key in ("intrinsics", "camera_matrix")):
+        intrinsics = read_camera(cam, "cam0/sensor.yaml")
+        arrays.update(camera_matrix=intrinsics.K, dist_coeffs=intrinsics.dist)
     return replace(n, **{k: np.asarray(v, dtype=float) for k, v in arrays.items() if v is not None})
 
 

@@ -55,6 +55,7 @@ import open3d as o3d
 
 from selfcal.models import scan as ms
 from selfcal.core import so3
+from selfcal.io.camera import camera_keys, read_camera
 
 log = logging.getLogger(__name__)
 
@@ -72,13 +73,15 @@ class LineCamera:
     vision_t_cam: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def to_dict(self) -> dict:
-        return {"K": self.K.tolist(), "dist": self.dist.tolist(), "width_px": int(self.width_px),
+        """sensor.yaml keys: the shared camera keys (:mod:`selfcal.io.camera`; one sensor row) and the pose."""
+        return {**camera_keys(self.K, self.dist, (self.width_px, 1)),
                 "vision_R_cam": self.vision_R_cam.tolist(), "vision_t_cam": self.vision_t_cam.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "LineCamera":
-        return cls(np.array(d["K"], float), np.array(d["dist"], float), int(d["width_px"]),
-                   np.array(d["vision_R_cam"], float), np.array(d["vision_t_cam"], float))
+        cam = read_camera(d)
+        return cls(cam.K, cam.dist, int(cam.resolution[0]), np.array(d["vision_R_cam"], float),
+                   np.array(d["vision_t_cam"], float))
 
 
 def default_stereo(baseline_m: float = 0.6, convergence_m: float = 2.5) -> tuple[LineCamera, LineCamera]:

@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from selfcal.core import inertial
+from selfcal.io.camera import camera_keys
 from selfcal.io.recording import Recording, SensorData, imu_sensor, write_recording
 from selfcal.core import so3
 from selfcal.models import tracker as mt
@@ -147,6 +148,7 @@ class TrackerScenario:
         self.R_B_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
         self.camera_matrix = np.array([[1200.0, 0.0, 320.0], [0.0, 1200.0, 240.0], [0.0, 0.0, 1.0]])
         self.dist_coeffs = np.array([-0.12, 0.05, 1e-4, -2e-4, 0.0])
+        self.resolution_px = (640, 480)
         self.with_velocity = with_velocity
         self.rates = {"imu0": imu_rate_hz, "tracker0": tracker_rate_hz, "incl0": incl_rate_hz, "cam0": cam_rate_hz}
         self.incl_average_s = incl_average_s
@@ -406,7 +408,7 @@ class TrackerScenario:
             "incl0": {"sensor_type": "inclinometer", "rate_hz": self.rates["incl0"], "sigma_rad": self.incl_sigma_rad,
                       "averaging_s": self.incl_average_s, "T_B_I": "identity"},
             "cam0": {"sensor_type": "beam_spot_camera", "rate_hz": self.rates["cam0"], "sigma_px": self.cam_sigma_px,
-                     "camera_matrix": self.camera_matrix.tolist(), "dist_coeffs": self.dist_coeffs.tolist(),
+                     **camera_keys(self.camera_matrix, self.dist_coeffs, self.resolution_px),
                      "R_B_C": self.R_B_C.tolist(), "lever_arm_camera_m": self.r_C_B.tolist()},
         }
 
