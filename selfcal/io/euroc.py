@@ -56,8 +56,8 @@ def import_euroc(source, imus=("imu0",)) -> Recording:
     for name in dict.fromkeys(imus):  # a name given twice is read once
         folder = root / name
         if not (folder / "data.csv").is_file():
-            present = sorted(p.name for p in root.iterdir() if (p / "data.csv").is_file())
-            raise RecordingError(f"{root}: no {name}/data.csv (folders with a data.csv: {', '.join(present) or 'none'})")
+            present = ", ".join(sorted(p.name for p in root.iterdir() if (p / "data.csv").is_file())) or "none"
+            raise RecordingError(f"{root}: no {name}/data.csv (folders with a data.csv: {present})")
         sensor = read_sensor(folder)
         sensor.meta = {**sensor.meta, "source": f"euroc/{root.parent.name}/{EUROC_FOLDER}/{name}"}
         sensor.folder = None

@@ -56,8 +56,24 @@ def _open(bag: Path):
     return reader
 
 
-def _topic_messages(reader, bag: Path, topic: str, kind: str) -> tuple[str, list]:
-    """(message type, deserialized messages ordered by header stamp) of ``topic``; one-line errors."""
+def _imu_row(msg, where: str) -> tuple:
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    g_cov, a_cov = msg.angular_velocity_covariance, msg.linear_acceleration_covariance
+    return (w.x, w.y, w.z, a.x, a.y, a.z, g_cov[0], g_cov[4], g_cov[8], a_cov[0], a_cov[4], a_cov[8])
+
+
+def _pose_row(msg, where: str) -> tuple:
+    if hasattr(msg, "point"):  # PointStamped
+        return msg.point.x, msg.point.y, msg.point.z
+    p, q = msg.pose.position, msg.pose.orientation
+    return p.x, p.y, p.z, q.x, q.y, q.z, q.w
+
+
+def _topic_rows(reader, bag: Path, topic: str, kind: str, row_of) -> tuple[dict, np.ndarray, list]:
+    """(sensor.yaml origin keys, header stamps in ns sorted, ``row_of(message, where)`` in that order) of ``topic``.
+
+    Each message is reduced to its row as it is read (a bag of a million IMU messages is not held decoded).
+    """
     from rosbags.highlevel import AnyReaderError
     topics = reader.topics
     listing = ", ".join(f"{name} [{info.msgtype}]" for name, info in sorted(topics.items())) or "none"
@@ -66,85 +82,71 @@ def _topic_messages(reader, bag: Path, topic: str, kind: str) -> tuple[str, list
     msgtype = topics[topic].msgtype
     if msgtype not in ACCEPTED[kind]:
         raise RecordingError(f"{bag}: topic {topic!r} is {msgtype}; --{kind} takes {' or '.join(ACCEPTED[kind])}")
-    connections = [c for c in reader.connections if c.topic == topic]
+    where = f"{bag}: topic {topic!r}"
+    stamps, rows, frame_id = [], [], None
     try:
-        messages = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections=connections)]
+        for connection, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == topic]):
+            msg = reader.deserialize(raw, connection.msgtype)
+            stamps.append(_stamp_ns(msg))  # the header stamp; the bag's receive time (_) is not the sensor's
+            rows.append(row_of(msg, f"{where} at {stamps[-1]} ns"))
+            frame_id = msg.header.frame_id if frame_id is None else frame_id
     except AnyReaderError as err:
-        raise RecordingError(f"{bag}: topic {topic!r}: cannot decode a message ({' '.join(str(err).split())})") \
-            from None
-    if not messages:
-        raise RecordingError(f"{bag}: topic {topic!r} holds no messages")
-    stamps = np.array([_stamp_ns(m) for m in messages], dtype=np.int64)
+        raise RecordingError(f"{where}: cannot decode a message ({' '.join(str(err).split())})") from None
+    if not rows:
+        raise RecordingError(f"{where} holds no messages")
+    stamps = np.array(stamps, dtype=np.int64)
     order = np.argsort(stamps, kind="stable")  # drivers publish late sometimes; the header stamp orders them
     stamps = stamps[order]
     same = np.flatnonzero(np.diff(stamps) == 0)
     if same.size:  # two samples at one instant: a recording cannot hold them, and guessing which is right is no fix
         hint = " (header stamps not set by the driver?)" if stamps[0] == stamps[-1] else ""
-        raise RecordingError(f"{bag}: topic {topic!r}: {same.size} messages repeat an earlier header stamp "
+        raise RecordingError(f"{where}: {same.size} messages repeat an earlier header stamp "
                              f"(first: {stamps[same[0]]} ns){hint}")
-    return msgtype, [messages[i] for i in order]
+    origin = {"frame_id": frame_id, "topic": topic, "message_type": msgtype, "source": f"{bag.name}{topic}"}
+    return origin, stamps, [rows[i] for i in order]
 
 
-def _noise_density(covariances: np.ndarray, rate_hz: float) -> float | None:
-    """Kalibr density from ROS per-message covariances (M, 9), or None where none is given.
+def _noise_density(variances: np.ndarray, rate_hz: float) -> float | None:
+    """Kalibr density from the per-message covariance diagonals (M, 3) of ROS, or None where none is given.
 
-    A message gives its variance when element 0 is not -1 and the diagonal is positive (all zeros: "unknown").
-    The per-axis variances (median over the messages that give them) are averaged over the axes: Kalibr keeps
-    one density per sensor.  White noise of per-sample variance sigma^2 at f Hz has density sigma / sqrt(f).
+    A message gives its variances when element 0 is not -1 ("no such measurement") and all three are positive
+    (all zeros: "unknown").  The per-axis variances (median over the messages that give them) are averaged
+    over the axes: Kalibr keeps one density per sensor.  White noise of per-sample variance sigma^2 at f Hz has
+    the density sigma / sqrt(f) (Kalibr's discrete-time sigma is density * sqrt(f)).
     """
-    diag = covariances[:, [0, 4, 8]]
-    given = (covariances[:, 0] != -1) & np.all(np.isfinite(diag) & (diag > 0), axis=1)
+    given = (variances[:, 0] != -1) & np.all(np.isfinite(variances) & (variances > 0), axis=1)
     if not given.any():
         return None
-    variance = float(np.mean(np.median(diag[given], axis=0)))
+    variance = float(np.mean(np.median(variances[given], axis=0)))
     return float(f"{math.sqrt(variance) / math.sqrt(rate_hz):.6g}")
 
 
-def _imu(name: str, topic: str, msgtype: str, messages: list, bag: Path) -> SensorData:
-    t_ns = np.array([_stamp_ns(m) for m in messages], dtype=np.int64)
-    gyro = np.array([(m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z) for m in messages])
-    accel = np.array([(m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z) for m in messages])
+def _imu(name: str, origin: dict, t_ns: np.ndarray, rows: list) -> SensorData:
+    table = np.array(rows, dtype=np.float64)
     meta = {"sensor_type": "imu"}
+    sources = []
     if len(t_ns) > 1:
         meta["rate_hz"] = float(f"{1e9 / float(np.median(np.diff(t_ns))):.6g}")
-    sources = []
-    for key, field in (("gyroscope_noise_density", "angular_velocity_covariance"),
-                       ("accelerometer_noise_density", "linear_acceleration_covariance")):
-        density = _noise_density(np.array([getattr(m, field) for m in messages], dtype=np.float64),
-                                 meta["rate_hz"]) if "rate_hz" in meta else None
-        if density is not None:
-            meta[key] = density
-            sources.append(field)
+        for key, field, columns in (("gyroscope_noise_density", "angular_velocity_covariance", slice(6, 9)),
+                                    ("accelerometer_noise_density", "linear_acceleration_covariance", slice(9, 12))):
+            density = _noise_density(table[:, columns], meta["rate_hz"])
+            if density is not None:
+                meta[key] = density
+                sources.append(field)
     meta["noise_source"] = (f"{' and '.join(sources)}: sqrt(variance) / sqrt(rate_hz)" if sources else
                             "none in the bag (covariances unknown): each estimator's default applies")
-    meta.update(_origin(messages, topic, msgtype, bag))
-    return imu_sensor(name, t_ns, gyro, accel, meta=meta)
+    return imu_sensor(name, t_ns, table[:, 0:3], table[:, 3:6], meta={**meta, **origin})
 
 
-def _origin(messages: list, topic: str, msgtype: str, bag: Path) -> dict:
-    return {"frame_id": messages[0].header.frame_id, "topic": topic, "message_type": msgtype,
-            "source": f"{bag.name}{topic}"}
-
-
-def _pose(name: str, topic: str, msgtype: str, messages: list, bag: Path) -> SensorData:
-    t_ns = np.array([_stamp_ns(m) for m in messages], dtype=np.int64)
-    if msgtype == POINT_TYPE:
-        columns = {"x": [m.point.x for m in messages], "y": [m.point.y for m in messages],
-                   "z": [m.point.z for m in messages]}
-        units = dict.fromkeys(columns, "m")
-        sensor_type = "position"
-    else:
-        p = [m.pose.position for m in messages]
-        q = [m.pose.orientation for m in messages]
-        columns = {"x": [v.x for v in p], "y": [v.y for v in p], "z": [v.z for v in p],
-                   "qx": [v.x for v in q], "qy": [v.y for v in q], "qz": [v.z for v in q], "qw": [v.w for v in q]}
-        units = {**dict.fromkeys("xyz", "m"), **dict.fromkeys(("qx", "qy", "qz", "qw"), "1")}
-        sensor_type = "pose"
-    values = {c: np.asarray(v, dtype=np.float64) for c, v in columns.items()}
-    meta = {"sensor_type": sensor_type, **_origin(messages, topic, msgtype, bag)}
-    if sensor_type == "pose":
+def _pose(name: str, origin: dict, t_ns: np.ndarray, rows: list) -> SensorData:
+    table = np.array(rows, dtype=np.float64)
+    position_only = origin["message_type"] == POINT_TYPE
+    columns = ("x", "y", "z") if position_only else ("x", "y", "z", "qx", "qy", "qz", "qw")
+    units = {c: "m" if c in "xyz" else "1" for c in columns}
+    meta = {"sensor_type": "position" if position_only else "pose", **origin}
+    if not position_only:
         meta["frames"] = "x, y, z: position of child in frame_id; qx, qy, qz, qw: frame_id_R_child (Hamilton, as ROS)"
-    return SensorData(name, t_ns, values, units, meta)
+    return SensorData(name, t_ns, {c: table[:, j].copy() for j, c in enumerate(columns)}, units, meta)
 
 
 def cloud_points_m(msg, where: str) -> np.ndarray:
@@ -167,22 +169,17 @@ def cloud_points_m(msg, where: str) -> np.ndarray:
     return xyz[np.isfinite(xyz).all(axis=1)]
 
 
-def _clouds(name: str, topic: str, msgtype: str, messages: list, bag: Path) -> tuple[SensorData, dict[str, bytes]]:
+def _clouds(name: str, origin: dict, t_ns: np.ndarray, clouds: list) -> tuple[SensorData, dict[str, bytes]]:
     from selfcal.io.pointcloud import point_cloud_bytes
-    t_ns = np.array([_stamp_ns(m) for m in messages], dtype=np.int64)
-    payloads, counts = {}, []
-    for t, msg in zip(t_ns, messages):
-        xyz = cloud_points_m(msg, f"{bag}: topic {topic!r} at {t} ns")
-        counts.append(len(xyz))
-        if len(xyz):
-            payloads[f"{name}/{CLOUD_FILE_PATTERN.format(timestamp=int(t))}"] = point_cloud_bytes(xyz)
-    if not payloads:
-        raise RecordingError(f"{bag}: topic {topic!r}: every cloud is empty (no finite x, y, z)")
-    keep = np.asarray(counts) > 0  # a cloud without a finite point has no file: it is no sample
-    meta = {"sensor_type": "lidar", "file_pattern": CLOUD_FILE_PATTERN, **_origin(messages, topic, msgtype, bag),
+    counts = np.array([len(xyz) for xyz in clouds])
+    keep = counts > 0  # a cloud without a finite point has no file: it is no sample
+    if not keep.any():
+        raise RecordingError(f"{origin['source']}: every cloud is empty (no finite x, y, z)")
+    payloads = {f"{name}/{CLOUD_FILE_PATTERN.format(timestamp=int(t))}": point_cloud_bytes(xyz)
+                for t, xyz in zip(t_ns[keep], (c for c, k in zip(clouds, keep) if k))}
+    meta = {"sensor_type": "lidar", "file_pattern": CLOUD_FILE_PATTERN, **origin,
             "points": "x, y, z in m in frame_id; non-finite points dropped, other fields not kept"}
-    sensor = SensorData(name, t_ns[keep], {"points": np.asarray(counts, dtype=np.float64)[keep]}, {"points": "1"},
-                        meta)
+    sensor = SensorData(name, t_ns[keep], {"points": counts[keep].astype(np.float64)}, {"points": "1"}, meta)
     return sensor, payloads
 
 
@@ -218,14 +215,13 @@ def import_rosbag(bag, imu_topics=(), points_topics=(), pose_topics=()) -> Recor
         for kind, topics in (("imu", imu_topics), ("points", points_topics), ("pose", pose_topics)):
             for k, topic in enumerate(topics):
                 name = f"{SENSOR_PREFIX[kind]}{k}"
-                msgtype, messages = _topic_messages(reader, bag, topic, kind)
                 if kind == "imu":
-                    sensors[name] = _imu(name, topic, msgtype, messages, bag)
+                    sensors[name] = _imu(name, *_topic_rows(reader, bag, topic, kind, _imu_row))
                 elif kind == "points":
-                    sensors[name], clouds = _clouds(name, topic, msgtype, messages, bag)
+                    sensors[name], clouds = _clouds(name, *_topic_rows(reader, bag, topic, kind, cloud_points_m))
                     payloads.update(clouds)
                 else:
-                    sensors[name] = _pose(name, topic, msgtype, messages, bag)
+                    sensors[name] = _pose(name, *_topic_rows(reader, bag, topic, kind, _pose_row))
     finally:
         reader.close()
     rec = Recording(path=bag, sensors=sensors, payloads=payloads)
