@@ -231,3 +231,9 @@ def test_sunsided_axes_form_one_frame_with_specific_force():
     misfit = {signs: float(np.sqrt(np.mean((df + np.cross(w * signs, f)) ** 2)))
               for signs in [(a, b, c) for a in (1, -1) for b in (1, -1) for c in (1, -1)]}
     assert min(misfit, key=misfit.get) == (1, 1, 1)
+
+
+def test_every_dataset_kind_is_a_command():
+    """The CLI lists the kinds without importing numpy (``selfcal --help`` stays light): the list must match."""
+    from selfcal.cli.importers import DATASET_KINDS
+    assert sorted(DATASET_KINDS) == sorted(IMPORTERS)

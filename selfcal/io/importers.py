@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
+from selfcal.io.imu_table import counts_to_si, import_imu_table, raw_counts_meta
 from selfcal.io.recording import Recording, RecordingError, SensorData, imu_sensor
 
 
@@ -101,20 +102,6 @@ def _white_noise_density(x: np.ndarray, rate_hz: float) -> float:
     return _sig(float(np.mean(np.std(x, axis=0))) / math.sqrt(rate_hz))
 
 
-def _raw_counts(accel_offset, accel_per_unit, gyro_offset, gyro_per_unit) -> dict:
-    return {
-        "accelerometer": {"offset_counts": [float(v) for v in accel_offset],
-                          "counts_per_unit": [float(v) for v in accel_per_unit], "unit": "m s^-2"},
-        "gyroscope": {"offset_counts": [float(v) for v in gyro_offset],
-                      "counts_per_unit": [float(v) for v in gyro_per_unit], "unit": "rad s^-1"},
-    }
-
-
-def _counts_to_si(counts: np.ndarray, offset, per_unit) -> np.ndarray:
-    # the exact formula documented under raw_counts in sensor.yaml: (counts - offset) / counts_per_unit
-    return (counts - np.asarray(offset, dtype=np.float64)) / np.asarray(per_unit, dtype=np.float64)
-
-
 # ------------------------------------------------------------------------------------------------ imu_tk Xsens
 
 XSENS_ACCEL_OFFSET_COUNTS = (33123.0, 33276.0, 32360.0)
@@ -123,6 +110,20 @@ XSENS_GYRO_OFFSET_COUNTS = (32768.0, 32466.0, 32485.0)
 XSENS_GYRO_COUNTS_PER_RAD_S = (4778.0, 4758.0, 4766.0)
 XSENS_RATE_HZ = 100
 XSENS_GRAVITY_M_S2 = 9.81744  # local gravity used by the upstream imu_tk test app (apps/test_imu_calib.cpp)
+
+
+def _counts_axes(offsets, counts_per_unit) -> dict:
+    return {axis: {"column": 1 + k, "unit": "counts", "scale": per_unit, "offset": offset}
+            for k, (axis, offset, per_unit) in enumerate(zip("xyz", offsets, counts_per_unit))}
+
+
+XSENS_MAP = {  # imu_tk's own files: whitespace tables "t [s] x y z", one per sensor, sharing their time column
+    "files": {"accel": "xsens_acc.mat.gz", "gyro": "xsens_gyro.mat.gz"},
+    "time": {"column": 0, "unit": "s"},
+    "accel": _counts_axes(XSENS_ACCEL_OFFSET_COUNTS, XSENS_ACCEL_COUNTS_PER_M_S2),
+    "gyro": _counts_axes(XSENS_GYRO_OFFSET_COUNTS, XSENS_GYRO_COUNTS_PER_RAD_S),
+    "rate_hz": XSENS_RATE_HZ,
+}
 
 
 def import_imu_tk_xsens(src_dir) -> Recording:
@@ -145,14 +146,8 @@ def import_imu_tk_xsens(src_dir) -> Recording:
     External Equipments", ICRA 2014.
     """
     src = _require_dir(src_dir)
-    acc_file, gyro_file = src / "xsens_acc.mat.gz", src / "xsens_gyro.mat.gz"
-    acc = _loadtxt(acc_file, 4)
-    gyro = _loadtxt(gyro_file, 4)
-    if acc.shape != gyro.shape or not np.array_equal(acc[:, 0], gyro[:, 0]):
-        raise RecordingError(f"{gyro_file}: time column differs from {acc_file.name} (expected identical)")
-    t_ns = _seconds_to_ns(acc[:, 0], acc_file, first_line=1)
-    accel_m_s2 = _counts_to_si(acc[:, 1:], XSENS_ACCEL_OFFSET_COUNTS, XSENS_ACCEL_COUNTS_PER_M_S2)
-    gyro_rad_s = _counts_to_si(gyro[:, 1:], XSENS_GYRO_OFFSET_COUNTS, XSENS_GYRO_COUNTS_PER_RAD_S)
+    imu = import_imu_table(src, XSENS_MAP, where="imu-tk-xsens map").imu("imu0")
+    t_ns, gyro_rad_s, accel_m_s2 = imu.t_ns, imu.gyro_rad_s, imu.accel_m_s2
     n_static = _leading_static_samples(gyro_rad_s, XSENS_RATE_HZ)
     meta = {
         "sensor_type": "imu",
@@ -165,7 +160,7 @@ def import_imu_tk_xsens(src_dir) -> Recording:
         "gyroscope_random_walk": 1.0e-4,
         "noise_source": (f"noise densities: std over the first {n_static / XSENS_RATE_HZ:g} s (static) / "
                          "sqrt(rate_hz), mean over axes; random walks: assumed typical MEMS values, not measured"),
-        "raw_counts": _raw_counts(XSENS_ACCEL_OFFSET_COUNTS, XSENS_ACCEL_COUNTS_PER_M_S2,
+        "raw_counts": raw_counts_meta(XSENS_ACCEL_OFFSET_COUNTS, XSENS_ACCEL_COUNTS_PER_M_S2,
                                   XSENS_GYRO_OFFSET_COUNTS, XSENS_GYRO_COUNTS_PER_RAD_S),
         "raw_counts_source": "Xsens factory ('datasheet') scale and offsets of this unit, from the original "
                              "MATLAB script of Tedaldi et al.; factory misalignment not applied",
@@ -230,8 +225,8 @@ def import_mpu6050_tomisuarez(csv_gz_file) -> Recording:
     zero = (0.0, 0.0, 0.0)
     accel_per_unit = (MPU6050_ACCEL_COUNTS_PER_M_S2,) * 3
     gyro_per_unit = (MPU6050_GYRO_COUNTS_PER_RAD_S,) * 3
-    accel_m_s2 = _counts_to_si(counts[:, :3], zero, accel_per_unit)
-    gyro_rad_s = _counts_to_si(counts[:, 3:], zero, gyro_per_unit)
+    accel_m_s2 = counts_to_si(counts[:, :3], zero, accel_per_unit)
+    gyro_rad_s = counts_to_si(counts[:, 3:], zero, gyro_per_unit)
     n_static = _leading_static_samples(gyro_rad_s, rate_hz)
     stem = file.name.removesuffix(".gz").removesuffix(".csv")
     meta = {
@@ -246,7 +241,7 @@ def import_mpu6050_tomisuarez(csv_gz_file) -> Recording:
         "gyroscope_random_walk": 1.0e-4,
         "noise_source": (f"noise densities: std over the first {n_static / rate_hz:g} s (static) / "
                          "sqrt(rate_hz), mean over axes; random walks: assumed typical MEMS values, not measured"),
-        "raw_counts": _raw_counts(zero, accel_per_unit, zero, gyro_per_unit),
+        "raw_counts": raw_counts_meta(zero, accel_per_unit, zero, gyro_per_unit),
         "raw_counts_source": "MPU-6050 datasheet nominal sensitivity (16384 LSB/g, 131 LSB/(deg/s)), zero offset",
         "upstream_settings": {"logging_type": int(settings["Logging Type"]),
                               "initialization_time_s": settings["Initialization time"],

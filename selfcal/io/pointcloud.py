@@ -22,7 +22,7 @@ from selfcal.core.errors import SelfcalError
 log = logging.getLogger(__name__)
 
 __all__ = ["PointCloudError", "LoadedCloud", "points_of", "cloud_from_points", "read_point_cloud",
-           "write_point_cloud", "read_triangle_mesh", "write_triangle_mesh"]
+           "write_point_cloud", "point_cloud_bytes", "read_triangle_mesh", "write_triangle_mesh"]
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".gltf", ".glb")
@@ -156,6 +156,15 @@ def write_point_cloud(path, cloud, binary: bool = True) -> Path:
         if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=not binary):
             raise PointCloudError(f"{path}: open3d could not write the point cloud")
     return path
+
+
+def point_cloud_bytes(points_m, suffix: str = ".ply") -> bytes:
+    """The file content of a cloud as open3d writes it (binary PLY by default): a payload that an importer puts
+    into a recording (``Recording.payloads``) and :func:`read_point_cloud` reads back."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as folder:
+        file = write_point_cloud(Path(folder) / f"cloud{suffix}", points_m)
+        return file.read_bytes()
 
 
 def read_triangle_mesh(path) -> o3d.geometry.TriangleMesh:

@@ -8,6 +8,7 @@ audit.  ``REC/<sensor>/sensor.yaml`` holds the sensor's metadata (Kalibr noise k
 from __future__ import annotations
 
 import io
+import logging
 import math
 import re
 from dataclasses import dataclass, field
@@ -20,6 +21,8 @@ from selfcal.core.sanity import imu_problems
 
 from selfcal.core.errors import SelfcalError
 from selfcal.io.atomic import atomic_directory
+
+log = logging.getLogger(__name__)
 
 GYRO_COLUMNS = ("w_RS_S_x", "w_RS_S_y", "w_RS_S_z")
 ACCEL_COLUMNS = ("a_RS_S_x", "a_RS_S_y", "a_RS_S_z")
@@ -37,6 +40,12 @@ _INT_RE = re.compile(r"^\s*[+-]?[0-9]+\s*$")
 
 class RecordingError(SelfcalError):
     """Bad recording input; the message is one line naming the file (and line, where there is one)."""
+
+
+class ForeignSensorError(RecordingError):
+    """A ``data.csv`` whose header is not a recording sensor's and names no IMU column (EuRoC's
+    ``cam0/data.csv`` with ``#timestamp [ns],filename``, its ground truth with ``#timestamp, p_RS_R_x [m]``):
+    :func:`read_recording` skips such a folder, as it skips a folder without ``data.csv``."""
 
 
 @dataclass
@@ -83,6 +92,7 @@ class Recording:
     sensors: dict[str, SensorData]
     payloads: dict[str, bytes] = field(default_factory=dict)  # files beside the CSVs ("lidar0/<t>.xyz.gz"), by
     # relative path: what an importer writes with the recording (a read recording loads them from the folders)
+    skipped: dict[str, str] = field(default_factory=dict)  # folder -> why it is no sensor (foreign data.csv)
 
     def imu_names(self) -> list[str]:
         """Names of the sensors that carry the six IMU columns, sorted."""
@@ -92,7 +102,9 @@ class Recording:
         """The IMU view of sensor ``name``; RecordingError if it is missing or not an IMU."""
         where = self.path if self.path is not None else "<recording>"
         if name not in self.sensors:
-            raise RecordingError(f"{where}: no sensor {name!r} (sensors: {', '.join(sorted(self.sensors)) or 'none'})")
+            why = f"; {name} skipped: {self.skipped[name]}" if name in self.skipped else ""
+            raise RecordingError(f"{where}: no sensor {name!r} (sensors: {', '.join(sorted(self.sensors)) or 'none'}"
+                                 f"{why})")
         s = self.sensors[name]
         missing = [c for c in IMU_UNITS if c not in s.values]
         if missing:
@@ -157,7 +169,9 @@ def read_recording(path) -> Recording:
     ----------
     path : str or Path
         The recording folder.  Every subfolder holding a ``data.csv`` is a sensor; other subfolders (and
-        ``truth/``) are ignored.
+        ``truth/``) are ignored, and so is a folder whose ``data.csv`` header is not a recording sensor's and
+        names no IMU column (a camera's ``#timestamp [ns],filename`` in an EuRoC ``mav0``): it is listed in
+        ``Recording.skipped`` with the reason, and logged.
 
     Returns
     -------
@@ -174,17 +188,33 @@ def read_recording(path) -> Recording:
         raise RecordingError(f"{path}: no such recording folder")
     if not path.is_dir():
         raise RecordingError(f"{path}: not a folder (a recording is a folder with one subfolder per sensor)")
-    sensors = {}
+    simulated = (path / TRUTH_FOLDER).is_dir()
+    sensors, skipped = {}, {}
     for sub in sorted(p for p in path.iterdir() if p.is_dir()):
         if sub.name == TRUTH_FOLDER or sub.name.startswith(".") or not (sub / "data.csv").is_file():
             continue
-        t_ns, values, units = _read_data_csv(sub / "data.csv")
-        simulated = (path / TRUTH_FOLDER).is_dir()
-        sensors[sub.name] = SensorData(sub.name, t_ns, values, units, _read_sensor_yaml(sub / "sensor.yaml", simulated),
-                                       sub)
+        try:
+            sensors[sub.name] = read_sensor(sub, simulated)
+        except ForeignSensorError as err:
+            skipped[sub.name] = str(err)
+            log.warning("skipped folder %s, not a recording sensor: %s", sub.name, err)
     if not sensors:
-        raise RecordingError(f"{path}: no sensor folder with a data.csv in this recording")
-    return Recording(path=path, sensors=sensors)
+        hint = ("; an EuRoC dataset? point at its mav0 folder, or convert it with 'selfcal import euroc'"
+                if (path / "mav0").is_dir() else "")
+        foreign = f" (skipped: {', '.join(skipped)})" if skipped else ""
+        raise RecordingError(f"{path}: no sensor folder with a data.csv in this recording{foreign}{hint}")
+    return Recording(path=path, sensors=sensors, skipped=skipped)
+
+
+def read_sensor(folder, simulated: bool = False) -> SensorData:
+    """One sensor folder (``data.csv`` and its optional ``sensor.yaml``), checked as :func:`read_recording` does.
+
+    ``simulated`` admits noise densities of zero in sensor.yaml.  ForeignSensorError (a RecordingError) for a
+    ``data.csv`` that is no recording sensor's.
+    """
+    folder = Path(folder)
+    t_ns, values, units = _read_data_csv(folder / "data.csv")
+    return SensorData(folder.name, t_ns, values, units, _read_sensor_yaml(folder / "sensor.yaml", simulated), folder)
 
 
 def read_truth(path) -> dict:
@@ -245,21 +275,27 @@ def _read_sensor_yaml(file: Path, simulated: bool = False) -> dict:
 
 
 def _parse_header(file: Path, line: str) -> tuple[list[str], list[str]]:
-    """Column names and units (without the timestamp column) from the header line."""
+    """Column names and units (without the timestamp column) from the header line.
+
+    A header not of the recording form raises ForeignSensorError when none of its fields looks like an IMU
+    column (the folder is some other tool's: skipped), RecordingError when one does (a broken IMU: refused).
+    """
     fields = [f.strip() for f in line.lstrip("\ufeff").split(",")]
+    imu_like = any(f.lower().startswith(("w_rs_s_", "a_rs_s_")) for f in fields)
+    error = RecordingError if imu_like else ForeignSensorError
     first = _FIELD_RE.match(fields[0])
     if first is None or first.group(1) != "#timestamp":
-        raise RecordingError(f"{file}:1: header must start with {TIMESTAMP_FIELD!r}, found {fields[0]!r}")
+        raise error(f"{file}:1: header must start with {TIMESTAMP_FIELD!r}, found {fields[0]!r}")
     if first.group(2).strip() != "ns":
-        raise RecordingError(f"{file}:1: timestamp unit must be ns, found {first.group(2).strip()!r}")
+        raise error(f"{file}:1: timestamp unit must be ns, found {first.group(2).strip()!r}")
     names, units = [], []
     for k, f in enumerate(fields[1:], start=2):
         m = _FIELD_RE.match(f)
         if m is None:
-            raise RecordingError(f"{file}:1: header field {k} {f!r} is not of the form 'name [unit]'")
+            raise error(f"{file}:1: header field {k} {f!r} is not of the form 'name [unit]'")
         name, unit = m.group(1).strip(), m.group(2).strip()
         if name in names:
-            raise RecordingError(f"{file}:1: column {name!r} appears twice in the header")
+            raise error(f"{file}:1: column {name!r} appears twice in the header")
         names.append(name)
         units.append(unit)
     _check_imu_columns(file, names, units)
