@@ -20,22 +20,26 @@ def audit_arguments(p) -> None:
 
 
 def audit(args) -> None:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_text
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.audit import audit_recording
     if not args.json and not args.report:
         raise UsageError("nothing to write: give --json OUT.json and/or --report OUT.html")
-    rec = read_recording(args.recording)
-    sensors = [name for name in (args.imu, args.imu1) if name] or None
-    run = audit_recording(rec, args.system, args.base, sensors, progress=log.info)
-    contract = run.to_json()
-    print_summary(contract)
-    if args.json:
-        atomic_write_text(output(args.json), json.dumps(contract, indent=1, default=plain) + "\n")
-        log.info("wrote %s", args.json)
+    with TerminalProgress(f"audit {args.system}") as progress:
+        rec = read_recording(args.recording)
+        sensors = [name for name in (args.imu, args.imu1) if name] or None
+        run = audit_recording(rec, args.system, args.base, sensors, progress=progress)
+        contract = run.to_json()
+        if args.json:
+            atomic_write_text(output(args.json), json.dumps(contract, indent=1, default=plain) + "\n")
+            log.info("wrote %s", args.json)
+        if args.report:
+            from selfcal.audit.report import write_report
+            progress("write the report")
+            write_report(run.result, output(args.report), run.report_extras(str(args.recording)))
+    print_summary(contract)  # after the bar is gone: results on stdout, never mixed with it
     if args.report:
-        from selfcal.audit.report import write_report
-        write_report(run.result, output(args.report), run.report_extras(str(args.recording)))
         print(f"report: {args.report}")
 
 
