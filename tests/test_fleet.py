@@ -55,11 +55,11 @@ def line(tmp_path_factory):
 def test_calibrate_imu_fleet_matches_the_pipeline_and_records_failures(client, line):
     progress = []
     result = fleet.run_fleet(line, "calibrate-imu", client=client,
-                             progress=lambda done, total, row: progress.append((done, total, row["ok"])))
+                             progress=lambda stage, done, total: progress.append((stage, done, total)))
     table = result.table
     assert list(table["name"]) == ["unit_a", "unit_b", "unit_c_static", "unit_d_broken"]
     assert list(table["ok"]) == [True, True, False, False]
-    assert sorted(d for d, _, _ in progress) == [1, 2, 3, 4] and {t for _, t, _ in progress} == {4}
+    assert sorted(d for _, d, _ in progress) == [0, 1, 2, 3, 4] and {(s, t) for s, _, t in progress} == {("recordings", 4)}
     errors = table.set_index("name")["error"]
     assert errors["unit_c_static"].startswith("TooFewStaticPosesError: ")
     assert errors["unit_d_broken"].startswith("RecordingError: ") and "data.csv:31" in errors["unit_d_broken"]
@@ -140,7 +140,9 @@ def test_cli_on_an_existing_scheduler_writes_table_and_report(client, line, tmp_
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert "3 recordings, 2 failed" in captured.out
-    assert "3/3 done, 2 failed" in captured.err  # the progress line
+    # stderr is no terminal here: no progress bar, only where the fleet runs, once
+    (where,) = captured.err.splitlines()
+    assert where.startswith(f"dask scheduler {client.scheduler.address}, dashboard {client.dashboard_link}")
     csv = pd.read_csv(out.with_suffix(".csv"))
     parquet = pd.read_parquet(out)
     assert list(csv.columns) == list(parquet.columns) and len(csv) == 3

@@ -50,13 +50,13 @@ class AuditRun:
             import tempfile
             from pathlib import Path
 
-            from selfcal.audit.report import plot_allan
+            from selfcal.audit.report import allan_table, plot_allan
             folder = Path(figure_dir or tempfile.mkdtemp(prefix="selfcal-allan-"))
             extras["noise"] = [{
                 "title": f"Allan deviation of {n.sensor}/{n.quantity}: measured against the white-noise model "
                          f"and the extended one ({'accepted' if n.finding else 'not accepted'})",
                 "png_path": str(plot_allan(n, folder / f"allan_{n.sensor}_{n.quantity}.png")),
-                "table": n.summary()} for n in self.noise]
+                "table": allan_table(n)} for n in self.noise]
         return extras
 
 
