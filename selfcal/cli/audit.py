@@ -46,7 +46,8 @@ def audit(args) -> None:
 def print_summary(contract: dict) -> None:
     """What the audit found, what passed the significance test but was not accepted, and what remains."""
     for finding in contract["findings"]:
-        gain, unit = finding["gain"], f" {finding['gain'].get('unit') or ''}".rstrip()
+        gain = finding["gain"]  # a noise finding's RMS is a relative error of the Allan deviation: no unit
+        unit = f" {gain['unit']}" if gain.get("unit") else " (relative)" if "metric" in gain else ""
         name = finding["effect"] if finding["effect"] != "unlisted" else f"unlisted: {finding['meaning']}"
         print(f"found {name} ({finding['target']}): RMS {gain['rms_before']:.4g} -> {gain['rms_after']:.4g}{unit}, "
               f"held-out {gain['heldout_rms_before']:.4g} -> {gain['heldout_rms_after']:.4g}{unit}"

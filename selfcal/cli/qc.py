@@ -39,7 +39,7 @@ def qc(args) -> int:
                                 markdown_path=output(args.markdown) if args.markdown else None,
                                 png_path=output(args.png) if args.png else None)
     for check in result.checks:
-        value = "-" if check.value is None else (f"{check.value:.4g}" if check.unit == "fraction"
+        value = "-" if check.value is None else (f"{check.value * 100:.4g} %" if check.unit == "fraction"
                                                  else f"{check.value * 1e3:.4g} mm")
         print(f"{check.name}: {value} [{check.status}]" + (f" ({check.note})" if check.value is None else ""))
     for warning in result.warnings:

@@ -143,7 +143,7 @@ class EncoderCalibrationResult:
                 f"edges in {self.seconds:.1f} s ({est.iterations} LM iterations); graduation error RMS "
                 f"{np.sqrt(np.mean(grad**2)) * 1e6:.3f} urad, median edge sigma "
                 f"{np.nanmedian(est.edges_sigma_rad[1:]) * 1e6:.3f} urad; p = {a.geometry[0]:.8g} +- "
-                f"{a.geometry_sigma[0]:.2g}; noise {a.noise_sigma:.3g} counts"
+                f"{a.geometry_sigma[0]:.2g} (dimensionless); noise {a.noise_sigma:.3g} counts"
                 + (f"; {len(self.flags)} frames flagged" if self.flags else ""))
 
 
@@ -195,7 +195,7 @@ class MeasureResult:
             cols = dict(self.drift_columns)
             p, ps = cols["p [1]"], cols["p_sigma [1]"]
             text += (f"; drift tracked ({ok.size / max(self.seconds, 1e-9):.1f} frames/s): p {p[0]:.8g} -> "
-                     f"{p[-1]:.8g} +- {ps[-1]:.2g}, a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
+                     f"{p[-1]:.8g} +- {ps[-1]:.2g} (dimensionless), a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
                      f"+- {cols['a0_sigma [counts]'][-1]:.2g} counts")
         return text
 
