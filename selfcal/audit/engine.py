@@ -342,7 +342,7 @@ class _Search:
         self.system, self.alpha, self.progress = system, alpha, progress
         self.library_alpha = min(alpha, LIBRARY_ALPHA)
         self.effects = tuple(system.base_effects)
-        progress(f"fit the base model ({', '.join(self.effects)})")
+        progress("fit the base model")
         self.fit = self.base_fit = system.fit(self.effects)
         self.fits = [self.fit]
         self.held = _heldout(system, self.effects)
