@@ -59,7 +59,8 @@ def test_calibrate_imu_fleet_matches_the_pipeline_and_records_failures(client, l
     table = result.table
     assert list(table["name"]) == ["unit_a", "unit_b", "unit_c_static", "unit_d_broken"]
     assert list(table["ok"]) == [True, True, False, False]
-    assert sorted(d for _, d, _ in progress) == [0, 1, 2, 3, 4] and {(s, t) for s, _, t in progress} == {("recordings", 4)}
+    assert sorted(d for _, d, _ in progress) == [0, 1, 2, 3, 4]
+    assert {(stage, total) for stage, _, total in progress} == {("recordings", 4)}
     errors = table.set_index("name")["error"]
     assert errors["unit_c_static"].startswith("TooFewStaticPosesError: ")
     assert errors["unit_d_broken"].startswith("RecordingError: ") and "data.csv:31" in errors["unit_d_broken"]

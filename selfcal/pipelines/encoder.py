@@ -195,7 +195,8 @@ class MeasureResult:
             cols = dict(self.drift_columns)
             p, ps = cols["p [1]"], cols["p_sigma [1]"]
             text += (f"; drift tracked ({ok.size / max(self.seconds, 1e-9):.1f} frames/s): p {p[0]:.8g} -> "
-                     f"{p[-1]:.8g} +- {ps[-1]:.2g} (dimensionless), a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
+                     f"{p[-1]:.8g} +- {ps[-1]:.2g} (dimensionless), "
+                     f"a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
                      f"+- {cols['a0_sigma [counts]'][-1]:.2g} counts")
         return text
 

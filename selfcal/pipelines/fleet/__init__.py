@@ -48,6 +48,7 @@ from selfcal.pipelines.fleet.manifest import FleetError, FleetItem, fleet_items,
 from selfcal.pipelines.fleet.outputs import flat_columns, numeric_summary, write_fleet_report, write_table
 from selfcal.pipelines.fleet.studies import Study, register_study, run_study, studies
 
-__all__ = ["FleetError", "FleetItem", "FleetResult", "Study", "Task", "dask_client", "fleet_items", "fleet_plan", "flat_columns",
-           "is_recording", "numeric_summary", "register_study", "register_task", "run_fleet", "run_study", "run_task",
-           "sensor_option", "studies", "submit_ordered", "tasks", "write_fleet_report", "write_table"]
+__all__ = ["FleetError", "FleetItem", "FleetResult", "Study", "Task", "dask_client", "fleet_items", "fleet_plan",
+           "flat_columns", "is_recording", "numeric_summary", "register_study", "register_task", "run_fleet",
+           "run_study", "run_task", "sensor_option", "studies", "submit_ordered", "tasks", "write_fleet_report",
+           "write_table"]
