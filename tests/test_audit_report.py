@@ -212,3 +212,50 @@ def test_estimate_formatting_with_units():
     slope = format_estimate("bias_temperature", {"slope": [1e-3, -2e-3, 5e-4], "unit": "rad s^-1 per degC",
                                                  "target": "imu0/gyro"}, {"slope": [1e-4] * 3})
     assert "per degC" in slope and "imu0/gyro" not in slope
+
+
+# --- what the report says next to its numbers: axes, units, what the plots show -------------------------------
+
+def test_wide_tables_scroll_instead_of_overflowing_the_page(page):
+    assert '<div class="wide"><table><tr><th rowspan="2">family</th>' in page  # the residual diagnostics
+    assert ".wide{overflow-x:auto" in page
+
+
+def test_measured_vs_simulated_sentences_name_the_axis(result):
+    rows = [{"family": "imu0/gyro", "axis": axis, "unit": "rad s^-1", "measured_base_fit": 2e-3,
+             "simulated_base_model_base_fit": 1e-3, "simulated_final_model_base_fit": 2e-3,
+             "measured_final_fit": 1e-3, "simulated_final_model_final_fit": 1e-3} for axis in "xyz"]
+    text = " ".join("".join(parse(render_report(result, {"simulation": rows})).text).split())
+    for axis in "xyz":
+        assert f"imu0/gyro {axis}: the base model's simulation predicts a residual of" in text
+
+
+def test_finding_plot_titles_say_what_the_x_axis_shows():
+    from selfcal.audit.report.figures import plotted_against
+    assert plotted_against("angular rate", ["angular_rate"]) == "angular rate"
+    assert plotted_against("orientation", ["up_x", "up_y", "up_z"]) == "orientation"
+    # a residual without the effect's coordinate is plotted against time, and the title says so
+    assert plotted_against("angular rate", ["time_s"]) == "time (angular rate is not a coordinate of this residual)"
+
+
+def test_allan_plots_and_table_name_axes_and_print_noise_density_and_random_walk_with_units(result, tmp_path):
+    from selfcal.audit.noise import noise_audit
+    from selfcal.audit.report import allan_table, plot_allan
+    rate_hz, density = 100.0, 2e-3  # white gyro noise, rad/s/sqrt(Hz): per-sample sigma = N sqrt(rate)
+    samples = np.random.default_rng(3).normal(0.0, density * np.sqrt(rate_hz), (10_000, 3))
+    noise = noise_audit(samples, rate_hz, "gyro")
+    table = allan_table(noise)
+    assert [row["axis"] for row in table] == ["x", "y", "z"]
+    # N read off 100 s of white noise: the short-tau Allan points have thousands of degrees of freedom (a few
+    # percent at most); 10 % would catch a variance printed for a deviation or a missing sqrt(rate)
+    for row in table:
+        assert abs(row["N [rad/s/sqrt(Hz)]"] / density - 1) < 0.10
+        assert row["K [rad/s^2/sqrt(Hz)]"] >= 0
+    png = plot_allan(noise, tmp_path / "allan.png")
+    page = render_report(result, {"noise": [{"title": "Allan deviation of imu0/gyro", "png_path": str(png),
+                                             "table": table}]})
+    assert "<th>N [rad/s/sqrt(Hz)]</th><th>K [rad/s^2/sqrt(Hz)]</th>" in page
+    assert "axis 0" not in page
+    from selfcal.audit.report.figures import noise_figures
+    legend = noise_figures("accel", noise.axes[0])  # the plot's legend text, with the accelerometer's units
+    assert re.fullmatch(r"N = \S+ m/s\^2/sqrt\(Hz\)\nK = \S+ m/s\^3/sqrt\(Hz\)", legend)

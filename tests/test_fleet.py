@@ -55,11 +55,12 @@ def line(tmp_path_factory):
 def test_calibrate_imu_fleet_matches_the_pipeline_and_records_failures(client, line):
     progress = []
     result = fleet.run_fleet(line, "calibrate-imu", client=client,
-                             progress=lambda done, total, row: progress.append((done, total, row["ok"])))
+                             progress=lambda stage, done, total: progress.append((stage, done, total)))
     table = result.table
     assert list(table["name"]) == ["unit_a", "unit_b", "unit_c_static", "unit_d_broken"]
     assert list(table["ok"]) == [True, True, False, False]
-    assert sorted(d for d, _, _ in progress) == [1, 2, 3, 4] and {t for _, t, _ in progress} == {4}
+    assert sorted(d for _, d, _ in progress) == [0, 1, 2, 3, 4]
+    assert {(stage, total) for stage, _, total in progress} == {("recordings", 4)}
     errors = table.set_index("name")["error"]
     assert errors["unit_c_static"].startswith("TooFewStaticPosesError: ")
     assert errors["unit_d_broken"].startswith("RecordingError: ") and "data.csv:31" in errors["unit_d_broken"]
@@ -140,7 +141,9 @@ def test_cli_on_an_existing_scheduler_writes_table_and_report(client, line, tmp_
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert "3 recordings, 2 failed" in captured.out
-    assert "3/3 done, 2 failed" in captured.err  # the progress line
+    # stderr is no terminal here: no progress bar, only where the fleet runs, once
+    (where,) = captured.err.splitlines()
+    assert where.startswith(f"dask scheduler {client.scheduler.address}, dashboard {client.dashboard_link}")
     csv = pd.read_csv(out.with_suffix(".csv"))
     parquet = pd.read_parquet(out)
     assert list(csv.columns) == list(parquet.columns) and len(csv) == 3
@@ -207,3 +210,43 @@ def test_encoder_production_line(client, tmp_path):
         true_rms = float(np.sqrt(np.mean(np.square(truth["graduation_rad"]))))
         # each edge is estimated to ~edge_sigma: the RMS over the disk can differ from the truth's by a few sigma
         assert abs(row["graduation_rms_rad"] - true_rms) < 5 * row["edge_sigma_median_rad"]
+
+
+def test_fleet_report_lists_each_recordings_effects_and_no_error_where_it_ran(tmp_path):
+    from html.parser import HTMLParser
+    table = pd.DataFrame([
+        {"name": "unit_a", "recording": "a", "task": "audit", "ok": True, "error": None, "seconds": 1.0,
+         "findings": 2, "effects": "accel_scale@imu0/accel; gyro_bias@imu0/gyro"},
+        {"name": "unit_b", "recording": "b", "task": "audit", "ok": True, "error": math.nan, "seconds": 1.2,
+         "findings": 0, "effects": ""},
+        {"name": "unit_c", "recording": "c", "task": "audit", "ok": False, "error": "RecordingError: bad row",
+         "seconds": 0.1, "findings": math.nan, "effects": math.nan}])
+    html_path = fleet.write_fleet_report(fleet.FleetResult(table, "audit", 3.0, 2), tmp_path / "r.html")
+
+    class Rows(HTMLParser):  # the cells of the last table (the per-recording one)
+        def __init__(self):
+            super().__init__()
+            self.tables = []
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "table":
+                self.tables.append([])
+            elif tag == "tr":
+                self.tables[-1].append([])
+            elif tag in ("td", "th"):
+                self.tables[-1][-1].append("")
+
+        def handle_data(self, data):
+            if self.tables and self.tables[-1] and self.tables[-1][-1]:
+                self.tables[-1][-1][-1] += data.strip()
+
+    parser = Rows()
+    parser.feed(html_path.read_text())
+    header, *rows = parser.tables[-1]
+    assert header == ["name", "ok", "error", "seconds", "findings", "effects"]
+    cells = {row[0]: dict(zip(header, row)) for row in rows}
+    assert cells["unit_a"]["error"] == "" and cells["unit_b"]["error"] == ""
+    assert cells["unit_a"]["effects"] == "accel_scale@imu0/accel; gyro_bias@imu0/gyro"
+    assert cells["unit_b"]["effects"] == "none"
+    assert cells["unit_c"]["error"] == "RecordingError: bad row" and cells["unit_c"]["effects"] == ""
+    assert not any(v in ("NaN", "nan", "None") for row in rows for v in row)

@@ -229,3 +229,11 @@ def test_cli_qc_bad_input_is_one_line_exit_1(tmp_path, capsys):
                  str(tmp_path / "o.json")]) == 1
     assert "unknown key" in capsys.readouterr().err
     assert not (tmp_path / "o.json").exists()
+
+
+def test_deviation_map_labels_of_neighbouring_spheres_point_to_different_corners():
+    from selfcal.pipelines.qc.report import LABEL_OFFSETS_PT, label_offsets_pt
+    centres = np.array([[0.0, 0.0], [0.01, 0.0], [0.0, 0.012], [1.0, 1.0]])  # three within 2 cm, one far
+    offsets = label_offsets_pt(centres, near=0.05)
+    assert len(set(offsets[:3])) == 3  # the three neighbours: three different corners
+    assert offsets[3] == LABEL_OFFSETS_PT[0]  # alone: the default corner

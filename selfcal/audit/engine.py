@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import Protocol
 
 import gtsam
@@ -42,6 +43,7 @@ from scipy import stats
 
 from selfcal.audit import terms as library
 from selfcal.audit.terms import Coordinate, Term
+from selfcal.core.progress import quiet
 from selfcal.core.solve import DegenerateDataError, dense_jacobian
 
 log = logging.getLogger(__name__)
@@ -323,8 +325,11 @@ def _heldout(system: AuditSystem, effects) -> Heldout:
     return Heldout(rss, rss_by, {label: np.sqrt(sq[label] / count[label]) for label in sq})
 
 
-def run_audit(system: AuditSystem, max_findings: int = 8, alpha: float = FAMILY_ALPHA, progress=None) -> AuditResult:
-    """Search the catalog, then the generic term library, one accepted extension at a time."""
+def run_audit(system: AuditSystem, max_findings: int = 8, alpha: float = FAMILY_ALPHA,
+              progress: Callable = quiet) -> AuditResult:
+    """Search the catalog, then the generic term library, one accepted extension at a time.
+
+    ``progress(stage)`` is called as the base fit and each step start (:mod:`selfcal.core.progress`)."""
     search = _Search(system, alpha, progress)
     search.run(max_findings)
     return search.result()
@@ -337,6 +342,7 @@ class _Search:
         self.system, self.alpha, self.progress = system, alpha, progress
         self.library_alpha = min(alpha, LIBRARY_ALPHA)
         self.effects = tuple(system.base_effects)
+        progress("fit the base model")
         self.fit = self.base_fit = system.fit(self.effects)
         self.fits = [self.fit]
         self.held = _heldout(system, self.effects)
@@ -402,10 +408,10 @@ class _Search:
         term outdoes (the caller restarts the search without it).  A library step tries at most
         ``LIBRARY_ATTEMPTS`` significant terms: each costs a refit and the cross-validation.
         """
+        self.progress(f"{phase}: score {len(candidates)} candidates")
         trials = sorted(self.score_many(candidates, self.fit), key=lambda t: t.p_value)
         threshold = (self.alpha if phase == "catalog" else self.library_alpha) / n_tests
-        if self.progress:
-            self.progress(f"step {len(self.history) + 1} ({phase}): {len(trials)} candidates, best "
+        self.progress(f"step {len(self.history) + 1} ({phase}): {len(trials)} candidates, best "
                           f"{trials[0].candidate.key} p={trials[0].p_value:.3g}")
         significant = [t for t in trials if t.p_value < threshold]
         if phase == "library":

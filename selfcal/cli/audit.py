@@ -20,6 +20,7 @@ def audit_arguments(p) -> None:
 
 
 def audit(args) -> None:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_texts
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.audit import audit_recording
@@ -27,18 +28,20 @@ def audit(args) -> None:
         raise UsageError("nothing to write: give --json OUT.json and/or --report OUT.html")
     if args.json and args.report and output(args.json).resolve() == output(args.report).resolve():
         raise UsageError("--json and --report name the same file: give two paths")
-    rec = read_recording(args.recording)
-    sensors = [name for name in (args.imu, args.imu1) if name] or None
-    run = audit_recording(rec, args.system, args.base, sensors, progress=log.info)
-    contract = run.to_json()
-    print_summary(contract)
-    texts = {}
-    if args.json:
-        texts[output(args.json)] = json.dumps(contract, indent=1, default=plain) + "\n"
-    if args.report:
-        from selfcal.audit.report import render_report
-        texts[output(args.report)] = render_report(run.result, run.report_extras(str(args.recording)))
-    atomic_write_texts(texts)  # the JSON and the HTML of one audit: both or neither
+    with TerminalProgress(f"audit {args.system}") as progress:
+        rec = read_recording(args.recording)
+        sensors = [name for name in (args.imu, args.imu1) if name] or None
+        run = audit_recording(rec, args.system, args.base, sensors, progress=progress)
+        contract = run.to_json()
+        texts = {}
+        if args.json:
+            texts[output(args.json)] = json.dumps(contract, indent=1, default=plain) + "\n"
+        if args.report:
+            from selfcal.audit.report import render_report
+            progress("write the report")
+            texts[output(args.report)] = render_report(run.result, run.report_extras(str(args.recording)))
+        atomic_write_texts(texts)  # the JSON and the HTML of one audit: both or neither
+    print_summary(contract)  # after the bar is gone: results on stdout, never mixed with it
     if args.report:
         print(f"report: {args.report}")
 
@@ -46,7 +49,8 @@ def audit(args) -> None:
 def print_summary(contract: dict) -> None:
     """What the audit found, what passed the significance test but was not accepted, and what remains."""
     for finding in contract["findings"]:
-        gain, unit = finding["gain"], f" {finding['gain'].get('unit') or ''}".rstrip()
+        gain = finding["gain"]  # a noise finding's RMS is a relative error of the Allan deviation: no unit
+        unit = f" {gain['unit']}" if gain.get("unit") else " (relative)" if "metric" in gain else ""
         name = finding["effect"] if finding["effect"] != "unlisted" else f"unlisted: {finding['meaning']}"
         print(f"found {name} ({finding['target']}): RMS {gain['rms_before']:.4g} -> {gain['rms_after']:.4g}{unit}, "
               f"held-out {gain['heldout_rms_before']:.4g} -> {gain['heldout_rms_after']:.4g}{unit}"

@@ -65,10 +65,13 @@ def calibrate_arguments(p) -> None:
 
 
 def calibrate(args) -> None:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_bytes
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.encoder import calibrate_encoder
-    cal = calibrate_encoder(read_recording(args.recording), use_reference=not args.no_reference)
+    with TerminalProgress("calibrate encoder") as progress:
+        cal = calibrate_encoder(read_recording(args.recording), use_reference=not args.no_reference,
+                                progress=progress)
     print(cal.summary())
     if args.out:
         out = output(args.out)
@@ -112,14 +115,17 @@ def _read_calibration(path) -> tuple[dict, object]:
 
 
 def measure(args) -> None:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.encoder import EncoderRecordingError, write_angles_csv
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.encoder import measure_encoder
     calibration, covariance = _read_calibration(args.calibration)
     if args.out_calibration and not args.track_drift:
         raise EncoderRecordingError("--out-calibration needs --track-drift (only a durable run updates it)")
-    result = measure_encoder(read_recording(args.recording), calibration, covariance, array=args.array,
-                             track_drift=args.track_drift)
+    with TerminalProgress("measure encoder") as progress:
+        progress("read the recording")
+        result = measure_encoder(read_recording(args.recording), calibration, covariance, array=args.array,
+                                 track_drift=args.track_drift, progress=progress)
     print(result.summary())
     if args.out:
         write_angles_csv(output(args.out), result.t_ns, result.beta_rad, result.sigma_rad, result.flags,

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 
 from selfcal import registry
 from selfcal.cli.common import UsageError, Verb, output
@@ -37,32 +36,31 @@ def _task_options(args) -> dict:
     return options
 
 
-def _progress_line():
-    """A progress callback: one status line, redrawn in place on a terminal, a line per result otherwise."""
-    start, failed, tty = time.perf_counter(), 0, sys.stderr.isatty()
-
-    def progress(done, total, row):
-        nonlocal failed
-        failed += not row.get("ok")
-        width = 30
-        bar = "#" * (width * done // total) + "-" * (width - width * done // total)
-        line = (f"fleet [{bar}] {done}/{total} done, {failed} failed, {time.perf_counter() - start:.0f} s"
-                + ("" if row.get("ok") else f" ({row.get('name', '?')}: {row.get('error')})"))
-        print(("\r" + line[:150].ljust(150)) if tty else line, end="" if tty and done < total else "\n",
-              file=sys.stderr, flush=True)
-    return progress
+def dashboard_line(client) -> str:
+    """Where to watch the fleet: the scheduler and its dashboard (served only when bokeh is installed)."""
+    import importlib.util
+    link = client.dashboard_link
+    if link and importlib.util.find_spec("bokeh") is None:
+        link += " (its pages need the bokeh package: pip install bokeh)"
+    return f"dask scheduler {client.scheduler.address}, dashboard {link or 'not served'}"
 
 
 def fleet(args) -> None:
-    from selfcal.pipelines.fleet import run_fleet, write_fleet_report, write_table
-    if not args.verbose:  # dask logs every scheduler and worker start at INFO; the progress line says enough
+    from selfcal.core.progress import TerminalProgress
+    from selfcal.pipelines.fleet import dask_client, fleet_plan, run_fleet, write_fleet_report, write_table
+    if not args.verbose:  # dask logs every scheduler and worker start at INFO: one line below says where it runs
+        import dask
         import distributed  # noqa: F401  (it sets its loggers' levels when imported: quiet them after that)
         logging.getLogger("distributed").setLevel(logging.WARNING)
+        dask.config.set({"logging.distributed": "warning"})  # the worker processes read it as they start
     options = _task_options(args)
     if not args.out.lower().endswith((".csv", ".parquet")):
         raise UsageError(f"--out {args.out}: the table is TABLE.csv or TABLE.parquet (both are written)")
-    result = run_fleet(args.source, args.task, options, scheduler=args.scheduler, workers=args.workers,
-                       progress=_progress_line())
+    fleet_plan(args.source, args.task, options)  # a wrong task or option is refused before a cluster starts
+    with dask_client(args.scheduler, args.workers) as client:
+        print(dashboard_line(client), file=sys.stderr, flush=True)
+        with TerminalProgress("fleet") as progress:
+            result = run_fleet(args.source, args.task, options, progress=progress, client=client)
     paths = write_table(result.table, output(args.out))
     print(f"{len(result.table)} recordings, {result.n_failed} failed, {result.seconds:.1f} s on "
           f"{result.workers} worker(s); table: {', '.join(map(str, paths))}")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from selfcal.cli.common import UsageError, Verb, log, output, plain
+from selfcal.cli.common import UsageError, Verb, output, plain
 
 QC_EXIT_CODES = {"pass": 0, "reported": 0, "fail": 3, "incomplete": 4}  # 1 is an error, 2 a usage error
 
@@ -20,6 +20,7 @@ def qc_arguments(p) -> None:
 
 
 def qc(args) -> int:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_text
     from selfcal.io.pointcloud import read_point_cloud, read_triangle_mesh
     from selfcal.pipelines.qc.checks import run_qc
@@ -28,19 +29,22 @@ def qc(args) -> int:
     if not (args.report or args.markdown or args.json):
         raise UsageError("nothing to write: give --report OUT.html, --markdown OUT.md and/or --json OUT.json")
     spec = QCSpec.from_yaml(args.spec) if args.spec else QCSpec()
-    mesh = read_triangle_mesh(args.reference) if args.reference else None
-    loaded = read_point_cloud(args.scan, drop_nonfinite=True)
-    result = run_qc(loaded, spec, mesh, args.reference, progress=log.info)
+    with TerminalProgress("qc") as progress:
+        progress("read the scan")
+        mesh = read_triangle_mesh(args.reference) if args.reference else None
+        loaded = read_point_cloud(args.scan, drop_nonfinite=True)
+        result = run_qc(loaded, spec, mesh, args.reference, progress=progress)
+        progress("write the reports")
+        written = write_reports(result, html_path=output(args.report) if args.report else None,
+                                markdown_path=output(args.markdown) if args.markdown else None,
+                                png_path=output(args.png) if args.png else None)
     for check in result.checks:
-        value = "-" if check.value is None else (f"{check.value:.4g}" if check.unit == "fraction"
+        value = "-" if check.value is None else (f"{check.value * 100:.4g} %" if check.unit == "fraction"
                                                  else f"{check.value * 1e3:.4g} mm")
         print(f"{check.name}: {value} [{check.status}]" + (f" ({check.note})" if check.value is None else ""))
     for warning in result.warnings:
         print(f"warning: {warning}")
     print(f"verdict: {result.verdict} ({result.seconds['total']:.1f} s)")
-    written = write_reports(result, html_path=output(args.report) if args.report else None,
-                            markdown_path=output(args.markdown) if args.markdown else None,
-                            png_path=output(args.png) if args.png else None)
     if args.json:
         written["json"] = atomic_write_text(output(args.json),
                                             json.dumps(result.to_json(), indent=1, default=plain) + "\n")

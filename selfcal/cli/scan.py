@@ -32,11 +32,13 @@ def smooth_arguments(p) -> None:
 
 
 def smooth(args) -> None:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.scan import smooth_scan
     if args.out and Path(args.out).suffix.lower() not in CLOUD_SUFFIXES:
         raise UsageError(f"{args.out}: the corrected scan is written as .ply, .pcd, .xyz or .pts")
-    est = smooth_scan(read_recording(args.recording), online=args.online)
+    with TerminalProgress("smooth scan") as progress:
+        est = smooth_scan(read_recording(args.recording), online=args.online, progress=progress)
     print(est.summary())
     if args.out:
         from selfcal.io.pointcloud import write_point_cloud

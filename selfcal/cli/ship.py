@@ -16,15 +16,18 @@ def smooth_arguments(p) -> None:
 def smooth(args) -> None:
     import numpy as np
 
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_text
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.ship import smooth_ship, tum_text
-    rec = read_recording(args.recording)
-    est = smooth_ship(rec, online=args.online, remove_known_acceleration=not args.keep_known_acceleration,
-                      imu_name=args.imu)
+    with TerminalProgress("smooth ship") as progress:
+        progress("read the recording")
+        rec = read_recording(args.recording)
+        est = smooth_ship(rec, online=args.online, remove_known_acceleration=not args.keep_known_acceleration,
+                          imu_name=args.imu, progress=progress)
     print(f"{len(est.t_s)} attitudes over {est.t_s[-1] - est.t_s[0]:.0f} s in {est.seconds:.1f} s "
-          f"({'iSAM2 online' if args.online else 'batch'}); final gyro bias "
-          f"{np.degrees(est.gyro_bias[-1]) * 3600} deg/h")
+          f"({'iSAM2 online' if args.online else 'batch'}); final gyro bias x, y, z "
+          f"{', '.join(f'{b:.3g}' for b in np.degrees(est.gyro_bias[-1]) * 3600)} deg/h")
     if args.out:
         atomic_write_text(output(args.out), tum_text(est, int(rec.sensors[args.imu].t_ns[0])))
         print(f"trajectory: {args.out}")

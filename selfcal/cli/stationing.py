@@ -27,7 +27,7 @@ def calibrate(args) -> None:
             h = heldout_stationing(cal.calibration, path, urdf=args.urdf)
             out["heldout"][h.name] = h.to_dict()
             print(f"held out {h.name}: evaluation points predicted from stationing points, RMS "
-                  f"{np.round(h.rms_m * 1e3, 2).tolist()} mm (3D {np.linalg.norm(h.rms_m) * 1e3:.2f}); rigid "
+                  f"{np.round(h.rms_m * 1e3, 2).tolist()} mm (3D {np.linalg.norm(h.rms_m) * 1e3:.2f} mm); rigid "
                   f"stations with the URDF lever arm: {np.linalg.norm(h.baseline_rms_m) * 1e3:.2f} mm")
     if args.out:
         write_yaml(args.out, out)

@@ -34,10 +34,14 @@ def smooth_arguments(p) -> None:
 
 
 def smooth(args) -> None:
+    from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_text
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.tracker import smooth_tracker
-    result = smooth_tracker(read_recording(args.recording), mode=args.mode, gating=not args.no_gating)
+    with TerminalProgress("smooth tracker") as progress:
+        progress("read the recording")
+        result = smooth_tracker(read_recording(args.recording), mode=args.mode, gating=not args.no_gating,
+                                progress=progress)
     c = result.counts
     print(f"{len(result.t_ns)} poses in {result.seconds:.1f} s ({args.mode}); measurements accepted {c['accepted']}, "
           f"rejected {c['rejected']}, held out {c['held_out']}, removed after a soft-fault alarm {c['removed']}")

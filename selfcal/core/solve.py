@@ -7,6 +7,7 @@ import gtsam
 import numpy as np
 
 from selfcal.core.errors import SelfcalError
+from selfcal.core.progress import quiet
 
 log = logging.getLogger(__name__)
 
@@ -31,13 +32,18 @@ def robust(sigmas, huber_k: float | None):
 
 
 def optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int = 100,
-             relative_tolerance: float = 1e-10, linear_solver: str | None = None) -> gtsam.Values:
+             relative_tolerance: float = 1e-10, linear_solver: str | None = None, progress=quiet) -> gtsam.Values:
     """Levenberg–Marquardt until the error's relative decrease falls below ``relative_tolerance``.
 
     ``linear_solver``: GTSAM's linear solver type (e.g. ``"MULTIFRONTAL_QR"`` for badly scaled systems where
-    Cholesky meets an indeterminate pivot); default GTSAM's (multifrontal Cholesky).
+    Cholesky meets an indeterminate pivot); default GTSAM's (multifrontal Cholesky).  ``progress(stage)`` is
+    told each iteration's error as it ends (:mod:`selfcal.core.progress`).
     """
     params = gtsam.LevenbergMarquardtParams()
+    if progress is not quiet:  # GTSAM calls the hook after every iteration
+        progress("least squares")
+        params.iterationHook = lambda i, before, after: progress(
+            f"least squares (iteration {i} done, error {before:.4g} -> {after:.4g})")
     if linear_solver is not None:
         params.setLinearSolverType(linear_solver)
     params.setMaxIterations(max_iterations)

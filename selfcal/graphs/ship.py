@@ -28,6 +28,7 @@ from scipy.signal import savgol_filter
 
 from selfcal.core import inertial
 from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
+from selfcal.core.progress import quiet
 from selfcal.core.solve import optimize
 from selfcal.models import ship
 
@@ -362,29 +363,31 @@ class ShipSmoother:
         return ShipGraph(self.options, self.inputs.gravity_m_s2, self.inputs.gyro_noise_density,
                          self.inputs.gyro_random_walk)
 
-    def batch(self) -> ShipEstimate:
+    def batch(self, progress=quiet) -> ShipEstimate:
         import time
         start = time.perf_counter()
+        progress("build the graph")
         builder = self._graph()
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for frame in self.keyframes:
             g, v = builder.add(frame, values if builder.k >= 0 else None, propagate=False)
             graph.push_back(g)
             values.insert(v)
-        result = optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE)
+        result = optimize(graph, values, max_iterations=50, relative_tolerance=RELATIVE_TOLERANCE, progress=progress)
         ypr = np.array([result.atRot3(R_KEY(k)).ypr() for k in range(len(self.keyframes))])
         bias = np.array([result.atVector(builder.bias_key(f.t_s)) for f in self.keyframes])
         speed = [result.atVector(builder.speed_key(f.t_s))[0] for f in self.keyframes if builder.unknown_speed(f)]
         return ShipEstimate(self._times(), ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, time.perf_counter() - start,
                             *_constants(result), np.array(speed) if speed else None)
 
-    def online(self, lag_s: float = 60.0) -> ShipEstimate:
+    def online(self, lag_s: float = 60.0, progress=quiet) -> ShipEstimate:
         """The filtered attitudes (each as first solved), replayed through :class:`OnlineShip`."""
         import time
         start = time.perf_counter()
         online = OnlineShip(self._graph(), lag_s)
         attitudes, biases, speeds = [], [], []
-        for frame in self.keyframes:
+        for i, frame in enumerate(self.keyframes):
+            progress("keyframes (iSAM2)", i, len(self.keyframes))
             rpy, bias, _ = online.add(frame)
             attitudes.append(rpy)
             biases.append(bias)

@@ -14,6 +14,7 @@ import numpy as np
 from selfcal import registry
 from selfcal.audit.engine import AuditResult, run_audit
 from selfcal.core.errors import SelfcalError
+from selfcal.core.progress import quiet
 from selfcal.io.recording import Recording
 from selfcal.pipelines.fleet import FleetError, register_task
 
@@ -49,20 +50,21 @@ class AuditRun:
             import tempfile
             from pathlib import Path
 
-            from selfcal.audit.report import plot_allan
+            from selfcal.audit.report import allan_table, plot_allan
             folder = Path(figure_dir or tempfile.mkdtemp(prefix="selfcal-allan-"))
             extras["noise"] = [{
                 "title": f"Allan deviation of {n.sensor}/{n.quantity}: measured against the white-noise model "
                          f"and the extended one ({'accepted' if n.finding else 'not accepted'})",
                 "png_path": str(plot_allan(n, folder / f"allan_{n.sensor}_{n.quantity}.png")),
-                "table": n.summary()} for n in self.noise]
+                "table": allan_table(n)} for n in self.noise]
         return extras
 
 
 def audit_recording(recording: Recording, system: str, base: str | None = None, sensors: list[str] | None = None,
-                    progress=None, simulate_seed: int = 1) -> AuditRun:
+                    progress=quiet, simulate_seed: int = 1) -> AuditRun:
     """Audit a recording as ``system`` (any system of :mod:`selfcal.registry` with an audit) against ``base``
-    (default: the system's first base model); ``sensors`` picks the IMU(s) where a system uses IMUs."""
+    (default: the system's first base model); ``sensors`` picks the IMU(s) where a system uses IMUs.
+    ``progress(stage)`` is told each stage as it starts (:mod:`selfcal.core.progress`)."""
     entry = registry.system(system)
     if not entry.audit:
         raise registry.UnknownSystemError(f"system {system!r} has no audit; audited systems: "
@@ -70,12 +72,14 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
     base = base or entry.audit[0]
     if base not in entry.audit:
         raise SelfcalError(f"unknown base model {base!r} for system {system}: choose {' or '.join(entry.audit)}")
+    progress(f"read the {system} recording")
     audit_system = entry.load("pipelines").audit_system(recording, base, sensors)
     result = run_audit(audit_system, progress=progress)
     # optional hooks of an audit system: model-free diagnostics, a re-simulation of the recording's own
     # scenario, and noise analyses beyond the residual search
     run = AuditRun(result, diagnostics=dict(getattr(audit_system, "diagnostics", {})))
     if hasattr(audit_system, "simulate"):
+        progress("simulate the recording's scenario (measured vs simulated)")
         run.simulation = measured_vs_simulated(audit_system, result, simulate_seed)
     if hasattr(audit_system, "noise_audits"):
         run.noise = audit_system.noise_audits(progress)

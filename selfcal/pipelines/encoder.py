@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from selfcal.baselines.encoder import patent_calibration
+from selfcal.core.progress import quiet
 from selfcal.graphs.encoder import calibration as ge
 from selfcal.graphs.encoder import durable as ged
 from selfcal.io.encoder import EncoderRecordingError, read_encoder_arrays, read_reference
@@ -142,24 +143,29 @@ class EncoderCalibrationResult:
                 f"edges in {self.seconds:.1f} s ({est.iterations} LM iterations); graduation error RMS "
                 f"{np.sqrt(np.mean(grad**2)) * 1e6:.3f} urad, median edge sigma "
                 f"{np.nanmedian(est.edges_sigma_rad[1:]) * 1e6:.3f} urad; p = {a.geometry[0]:.8g} +- "
-                f"{a.geometry_sigma[0]:.2g}; noise {a.noise_sigma:.3g} counts"
+                f"{a.geometry_sigma[0]:.2g} (dimensionless); noise {a.noise_sigma:.3g} counts"
                 + (f"; {len(self.flags)} frames flagged" if self.flags else ""))
 
 
 def calibrate_encoder(rec: Recording, model: ge.EncoderModel = ge.EncoderModel(), frames: dict | None = None,
-                      use_reference: bool = True, covariance: bool = True) -> EncoderCalibrationResult:
-    """Batch ML self-calibration of an encoder recording (mixed when it holds ``reference/``)."""
+                      use_reference: bool = True, covariance: bool = True,
+                      progress=quiet) -> EncoderCalibrationResult:
+    """Batch ML self-calibration of an encoder recording (mixed when it holds ``reference/``);
+    ``progress(stage)`` is told each stage as it starts (:mod:`selfcal.core.progress`)."""
     start = time.perf_counter()
+    progress("read and decode the frames")
     problem = problem_from_recording(rec, frames, use_reference)
     flags = {f"{a.name}/{J}": d.flag for a, dec in zip(problem.arrays, problem.decoded)
              for J, d in enumerate(dec) if not d.ok}
     for key, flag in flags.items():
         log.warning("frame %s not used: %s", key, flag)
     # the patent's start values (decoding + interpolated crossings, iterated averages) on array 0
+    progress("start values (the patent's method)")
     a0 = problem.arrays[0]
     base = patent_calibration(a0.frames, problem.code, a0.geometry_nominal, a0.adc_max, a0.noise_sigma)
     beta = np.where(np.isfinite(base.beta_rad), base.beta_rad, problem.beta0)
     geometry = [base.geometry] + [a.geometry_nominal for a in problem.arrays[1:]]
+    progress("ML calibration (factor graph" + (", covariance)" if covariance else ")"))
     est = ge.calibrate(problem, model, covariance=covariance,
                        start={"edges": base.edges_rad, "beta": beta, "geometry": geometry})
     arrays = read_encoder_arrays(rec, frames)
@@ -189,7 +195,8 @@ class MeasureResult:
             cols = dict(self.drift_columns)
             p, ps = cols["p [1]"], cols["p_sigma [1]"]
             text += (f"; drift tracked ({ok.size / max(self.seconds, 1e-9):.1f} frames/s): p {p[0]:.8g} -> "
-                     f"{p[-1]:.8g} +- {ps[-1]:.2g}, a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
+                     f"{p[-1]:.8g} +- {ps[-1]:.2g} (dimensionless), "
+                     f"a0 {cols['a0 [counts]'][0]:.4g} -> {cols['a0 [counts]'][-1]:.4g} "
                      f"+- {cols['a0_sigma [counts]'][-1]:.2g} counts")
         return text
 
@@ -242,12 +249,13 @@ def durable_prior(calibration: dict, covariance: np.ndarray | None, array: str =
 
 def measure_encoder(rec: Recording, calibration: dict, covariance: np.ndarray | None = None,
                     array: str = "array0", frames: dict | None = None, track_drift: bool = False,
-                    drift: ged.DriftModel = ged.DriftModel()) -> MeasureResult:
+                    drift: ged.DriftModel = ged.DriftModel(), progress=quiet) -> MeasureResult:
     """ML angle of every frame of ``array`` with the calibration; flagged frames get NaN and their flag.
 
     ``track_drift``: durable self-calibration (:mod:`selfcal.graphs.encoder.durable`): the calibration is the
     prior, iSAM2 follows the drifting geometry, aperture and dark level frame by frame (columns
     ``drift_columns``) and refines the edges; the result carries the updated calibration.
+    ``progress(stage, done, total)`` counts the frames (:mod:`selfcal.core.progress`).
     """
     arrays = {a.name: a for a in read_encoder_arrays(rec, frames)}
     if array not in arrays:
@@ -261,18 +269,26 @@ def measure_encoder(rec: Recording, calibration: dict, covariance: np.ndarray | 
         raise EncoderRecordingError(f"{rec.path}/{array}: {data.n_diodes} diodes, the calibration is for "
                                     f"{calibration['arrays'][array]['n_diodes']}")
     if track_drift:
-        return _measure_durable(data, calibration, covariance, array, drift)
-    out = [ge.measure_frame(f, code, edges, cal, covariance, edge_index) for f in data.frames]
+        return _measure_durable(data, calibration, covariance, array, drift, progress)
+    out = []
+    for i, frame in enumerate(data.frames):
+        progress("frames", i, len(data.frames))
+        out.append(ge.measure_frame(frame, code, edges, cal, covariance, edge_index))
     return MeasureResult(data.t_ns, np.array([m.beta_rad if not m.flag else np.nan for m in out]),
                          np.array([m.sigma_rad if not m.flag else np.nan for m in out]),
                          np.array([m.sigma_noise_rad for m in out]), [m.flag for m in out], array)
 
 
-def _measure_durable(data, calibration: dict, covariance, array: str, drift: ged.DriftModel) -> MeasureResult:
+def _measure_durable(data, calibration: dict, covariance, array: str, drift: ged.DriftModel,
+                     progress) -> MeasureResult:
     prior = durable_prior(calibration, covariance, array)
     start = time.perf_counter()
     estimator = ged.DurableEncoder(prior, drift)
-    steps = [estimator.add_frame(int(t), f) for t, f in zip(data.t_ns, data.frames)]
+    steps = []
+    for i, (t_ns, frame) in enumerate(zip(data.t_ns, data.frames)):
+        progress("frames (iSAM2, drift tracked)", i, len(data.frames))
+        steps.append(estimator.add_frame(int(t_ns), frame))
+    progress("updated calibration")
     seconds = time.perf_counter() - start
     columns = []
     for i, g in enumerate(prior.geometry_free):

@@ -23,6 +23,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from selfcal.graphs import scan as gs
+from selfcal.core.progress import quiet
 from selfcal.core.solve import DegenerateDataError
 from selfcal.io.camera import read_camera
 from selfcal.io.recording import Recording, RecordingError
@@ -340,8 +341,10 @@ def solve_scan(data: ScanData, problem: gs.ScanProblem, model: gs.ScanModel = gs
 
 
 def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel = gs.ScanModel(),
-                scan_name: str = "scan0", ins_name: str = "ins0", iterations: int | None = None) -> ScanEstimate:
-    """Correct a mobile scan: sphere constraints -> INS error terms -> every clock's pose -> set A."""
+                scan_name: str = "scan0", ins_name: str = "ins0", iterations: int | None = None,
+                progress=quiet) -> ScanEstimate:
+    """Correct a mobile scan: sphere constraints -> INS error terms -> every clock's pose -> set A.
+    ``progress(stage)`` is told each stage as it starts (:mod:`selfcal.core.progress`)."""
     start = time.perf_counter()
     stages = {}
     clock_ = [time.perf_counter(), time.process_time()]
@@ -351,14 +354,18 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
         stages[name] = (now[0] - clock_[0], now[1] - clock_[1])
         clock_[:] = now
 
+    progress("read points")
     data = read_scan(recording, scan_name, ins_name)
     if sum(len(p) for p in data.points_V) == 0:
         raise DegenerateDataError(f"{recording.path}: the scan holds no points")
     lap("read points")
+    progress("sphere detection (set B)")
     problem = scan_problem(data)
     lap("sphere detection (set B)")
+    progress("factor graph" + (" (iSAM2)" if online else ""))
     problem, solution, theta = solve_scan(data, problem, model, online, iterations)
     lap("factor graph")
+    progress("correction of all points")
     R, r = gs.corrected_clock_poses(problem, solution)
     P, clock = data.world_points(R, r)
     res = np.concatenate(gs.sphere_residuals(problem, solution.values, model))

@@ -5,6 +5,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from selfcal.core import inertial
+from selfcal.core.progress import quiet
 from selfcal.graphs.ship import SPEED_RATE_WINDOW_S, ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import ship
@@ -56,12 +57,16 @@ def uniformly_sampled(data):
 
 
 def smooth_ship(recording: Recording, online: bool = False, remove_known_acceleration: bool = True,
-                imu_name: str = "imu0") -> ShipEstimate:
+                imu_name: str = "imu0", progress=quiet) -> ShipEstimate:
+    """Attitude and gyro bias of a voyage, batch or iSAM2; ``progress(stage, done, total)`` is told how far
+    it is (:mod:`selfcal.core.progress`)."""
+    progress("IMU and speed on one time base")
     inputs = ship_inputs(recording, imu_name)
     if len(inputs.t_s) < 10:
         raise RecordingError(f"{imu_name}: too few samples for a voyage ({len(inputs.t_s)})")
+    progress("keyframes")
     smoother = ShipSmoother(inputs, ShipGraphOptions(remove_known_acceleration=remove_known_acceleration))
-    return smoother.online() if online else smoother.batch()
+    return smoother.online(progress=progress) if online else smoother.batch(progress=progress)
 
 
 def tum_text(estimate: ShipEstimate, t0_ns: int = 0) -> str:

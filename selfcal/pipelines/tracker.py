@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
+from selfcal.core.progress import quiet
 from selfcal.core.sanity import accelerometer_tilt_at, inclinometer_problems, tracker_problems
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
@@ -169,9 +170,11 @@ class TrackerResult:
 
 
 def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = True,
-                   options: TrackerOptions | None = None, covariance: bool = True) -> TrackerResult:
+                   options: TrackerOptions | None = None, covariance: bool = True,
+                   progress=quiet) -> TrackerResult:
     """Smooth a tracker recording: ``'fixed-lag'`` / ``'isam2'`` give the online (filtered) poses, ``'batch'``
-    runs the online pass for the gating decisions and then Levenberg-Marquardt over every keyframe."""
+    runs the online pass for the gating decisions and then Levenberg-Marquardt over every keyframe.
+    ``progress(stage, done, total)`` counts the seconds of recording passed (:mod:`selfcal.core.progress`)."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; known: {', '.join(MODES)}")
     meta = {name: s.meta for name, s in recording.sensors.items()}
@@ -182,13 +185,21 @@ def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = Tru
     tracker = OnlineTracker(noise_from_meta(meta), options=options)
     start = time.perf_counter()
     outputs = []
-    for name, t, values in recording_events(recording):
+    events = recording_events(recording)
+    t_first_ns, t_last_ns = (recording.sensors["imu0"].t_ns[[0, -1]] if "imu0" in recording.sensors else (0, 0))
+    duration_s = int((t_last_ns - t_first_ns) * 1e-9)
+    second = -1
+    for name, t, values in events:
+        if (t - t_first_ns) // 1_000_000_000 != second:  # once per second of recording, not per sample
+            second = (t - t_first_ns) // 1_000_000_000
+            progress("online pass (s of recording)", int(min(max(second, 0), duration_s)), duration_s)
         outputs.extend(tracker.push(name, t, values))
     if not outputs:
         raise RecordingError(f"{recording.path}: no pose: the tracker, inclinometer and camera never all reported")
     decisions = [d for o in outputs for d in o["decisions"]]
     faults = [o["faults"] for o in outputs]
     if mode == "batch":
+        progress("batch smoothing (LM over every keyframe" + (", covariance)" if covariance else ")"))
         t_ns, poses, covs = batch_smooth(tracker.estimator, covariance=covariance)
         position = np.array([p.translation() for p in poses])
         quats = np.array([[q.x(), q.y(), q.z(), q.w()] for q in (p.rotation().toQuaternion() for p in poses)])

@@ -27,12 +27,12 @@ import jinja2
 
 from selfcal.audit.engine import AuditResult
 from selfcal.audit.report import sections
-from selfcal.audit.report.figures import figure_to_data_uri, plot_allan, png_to_data_uri
+from selfcal.audit.report.figures import allan_table, figure_to_data_uri, plot_allan, png_to_data_uri
 from selfcal.audit.report.format import finite, format_estimate, num, p_class, pval, signed, unit_html, value_html
 from selfcal.io.atomic import atomic_write_text
 
-__all__ = ["CSS", "figure_to_data_uri", "format_estimate", "num", "plot_allan", "png_to_data_uri", "pval",
-           "render_report", "write_report"]
+__all__ = ["CSS", "allan_table", "figure_to_data_uri", "format_estimate", "num", "plot_allan", "png_to_data_uri",
+           "pval", "render_report", "write_report"]
 
 # pages embed the style as <style>{CSS}</style>, and the block has always opened on a line of its own
 CSS = "\n" + resources.files(__name__).joinpath("templates", "style.css").read_text(encoding="utf-8")

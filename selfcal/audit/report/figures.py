@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 
 from selfcal.audit.diagnostics import component_names
 from selfcal.audit.engine import ResidualFamily
-from selfcal.audit.noise import QUANTITIES, NoiseAuditResult
+from selfcal.audit.noise import NoiseAuditResult
 from selfcal.audit.report.format import engineering_exponent, tex_num, unit_tex
 from selfcal.io.atomic import atomic_write_bytes
 
@@ -37,10 +37,12 @@ def png_to_data_uri(png: bytes) -> str:
 # --- findings -----------------------------------------------------------------------------------------------------
 
 COORDINATE_SETS = {"orientation": ("up_x", "up_y", "up_z"), "rotation of each move": ("rot_x", "rot_y", "rot_z"),
-                   "time": ("time_s",)}
+                   "time": ("time_s",), "angular rate": ("angular_rate", "angular rate")}
 COORDINATE_LABELS = {"up_x": "gravity direction x (sensor frame)", "up_y": "gravity direction y (sensor frame)",
                      "up_z": "gravity direction z (sensor frame)", "rot_x": "move rotation x [rad]",
-                     "rot_y": "move rotation y [rad]", "rot_z": "move rotation z [rad]", "time_s": "time [s]"}
+                     "rot_y": "move rotation y [rad]", "rot_z": "move rotation z [rad]", "time_s": "time [s]",
+                     "angular_rate": "angular rate |w| [rad/s]", "angular rate": "angular rate |w| [rad/s]",
+                     "angular_acceleration": "angular acceleration |dw/dt| [rad/s^2]"}
 COMPONENT_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2")
 
 
@@ -114,8 +116,18 @@ def finding_figure(before: ResidualFamily, after: ResidualFamily, coordinate: st
         fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside right upper", fontsize=9,
                    title="component", title_fontsize=9, markerscale=1.3)
     axes[0, 0].set_ylim(-top, top)
-    fig.suptitle(f"{before.label} residual vs {coordinate}: before and after {effect}", fontsize=11)
+    fig.suptitle(f"{before.label} residual vs {plotted_against(coordinate, coords)}: before and after {effect}",
+                 fontsize=11)
     return fig
+
+
+def plotted_against(coordinate: str, coords: list[str]) -> str:
+    """What the x axes show, as a title says it: the effect's coordinate, or what stands in for it when the
+    residual does not carry that coordinate (then time, :func:`plot_coordinates`)."""
+    shown = ", ".join(COORDINATE_LABELS.get(c, c).split(" [")[0] for c in coords) or coordinate
+    if set(coords) & set(COORDINATE_SETS.get(coordinate, (coordinate,))):
+        return coordinate
+    return f"{shown} ({coordinate} is not a coordinate of this residual)"
 
 
 def rival_coordinate(effect: str, family: ResidualFamily) -> str | None:
@@ -177,13 +189,36 @@ def ambiguity_figure(before: ResidualFamily, coordinate: str, rival: str, rival_
 
 # --- noise --------------------------------------------------------------------------------------------------------
 
+AXIS_NAMES = ("x", "y", "z")
+# per quantity: Allan deviation unit, noise density N unit, random walk K unit (Kalibr's imu.yaml units)
+ALLAN_UNITS = {"gyro": ("rad/s", "rad/s/sqrt(Hz)", "rad/s^2/sqrt(Hz)"),
+               "accel": ("m/s^2", "m/s^2/sqrt(Hz)", "m/s^3/sqrt(Hz)")}
+
+
+def noise_figures(quantity: str, axis) -> str:
+    """``N = ... K = ...`` of one axis: white density and random walk of the white + random-walk fit
+    (:func:`selfcal.core.allan.avar_white`, :func:`~selfcal.core.allan.avar_random_walk`), Kalibr's pair."""
+    fit = axis.extensions["random_walk"].params
+    _, n_unit, k_unit = ALLAN_UNITS[quantity]
+    return f"N = {fit['white_density']:.3g} {n_unit}\nK = {fit['random_walk']:.3g} {k_unit}"
+
+
+def allan_table(result: NoiseAuditResult) -> list[dict]:
+    """One row per axis: N and K (white + random-walk fit) in Kalibr's units, the best extension and its verdict."""
+    _, n_unit, k_unit = ALLAN_UNITS[result.quantity]
+    return [{"axis": AXIS_NAMES[a.axis], f"N [{n_unit}]": a.extensions["random_walk"].params["white_density"],
+             f"K [{k_unit}]": a.extensions["random_walk"].params["random_walk"], "best extension": a.best,
+             "delta BIC": a.delta_bic, "accepted": a.accepted} for a in result.axes]
+
+
 def plot_allan(result: NoiseAuditResult, path) -> Path:
     """PNG of the measured Allan deviation (68 % chi-square intervals), white-only and extended predictions.
 
-    One panel per axis; the extended prediction is drawn solid when accepted, dotted when rejected.  Written
+    One panel per axis; the extended prediction is drawn solid when accepted, dotted when rejected.  The legend
+    gives the axis's noise density N and random walk K in Kalibr's units (:func:`noise_figures`).  Written
     atomically; matplotlib's Agg canvas is used directly (no global backend change).
     """
-    unit = QUANTITIES[result.quantity][0]
+    unit = ALLAN_UNITS[result.quantity][0]
     fig = Figure(figsize=(5.0 * len(result.axes), 4.2), layout="constrained")
     FigureCanvasAgg(fig)
     axs = fig.subplots(1, len(result.axes), squeeze=False)[0]
@@ -199,7 +234,8 @@ def plot_allan(result: NoiseAuditResult, path) -> Path:
         ax.loglog(tt, a.extended.adev(tt), "-" if a.accepted else ":", color="tab:red",
                   label=f"{a.best}: {100 * a.extended_err[1]:.0f} % rms"
                         f"{'' if a.accepted else ' (rejected)'}")
-        ax.set_title(f"{result.sensor} {result.quantity} axis {a.axis}  dBIC {a.delta_bic:.0f}")
+        ax.plot([], [], " ", label=noise_figures(result.quantity, a))  # N and K: legend text, no line
+        ax.set_title(f"{result.sensor} {result.quantity} {AXIS_NAMES[a.axis]}  dBIC {a.delta_bic:.0f}")
         ax.set_xlabel("tau [s]")
         ax.set_ylabel(f"Allan deviation [{unit}]")
         ax.grid(True, which="both", alpha=0.3)

@@ -305,7 +305,8 @@ def simulation(rows: list[dict]) -> dict:
         sf, mf = _key_starting(r, "simulated_final", prefer="base_fit"), _key_starting(r, "measured_final")
         if not (mb and sb and finite(r.get(mb)) and finite(r.get(sb))):
             continue
-        sentences.append({"family": str(r.get("family", "")),
+        axis = str(r.get("axis") or "")
+        sentences.append({"family": f"{r.get('family', '')} {axis}".strip(),  # one sentence per axis: name it
                           "unit": r.get("unit") if isinstance(r.get("unit"), str) else "",
                           "measured_base": r[mb], "simulated_base": r[sb],
                           "simulated_final": r[sf] if sf and finite(r.get(sf)) else None,

@@ -42,12 +42,13 @@ A system registers a study (``register_study(name, block, combine)``, e.g. ``imu
 seeded by its own seed (``first_seed + run``) and the blocks are joined in seed order, so the same seeds give
 bit-identical estimates whatever the number of workers or the block size (timings differ, of course).
 """
-from selfcal.pipelines.fleet.engine import (FleetResult, Task, dask_client, register_task, run_fleet, run_task,
-                                           sensor_option, submit_ordered, tasks)
+from selfcal.pipelines.fleet.engine import (FleetResult, Task, dask_client, fleet_plan, register_task, run_fleet,
+                                           run_task, sensor_option, submit_ordered, tasks)
 from selfcal.pipelines.fleet.manifest import FleetError, FleetItem, fleet_items, is_recording
 from selfcal.pipelines.fleet.outputs import flat_columns, numeric_summary, write_fleet_report, write_table
 from selfcal.pipelines.fleet.studies import Study, register_study, run_study, studies
 
-__all__ = ["FleetError", "FleetItem", "FleetResult", "Study", "Task", "dask_client", "fleet_items", "flat_columns",
-           "is_recording", "numeric_summary", "register_study", "register_task", "run_fleet", "run_study", "run_task",
-           "sensor_option", "studies", "submit_ordered", "tasks", "write_fleet_report", "write_table"]
+__all__ = ["FleetError", "FleetItem", "FleetResult", "Study", "Task", "dask_client", "fleet_items", "fleet_plan",
+           "flat_columns", "is_recording", "numeric_summary", "register_study", "register_task", "run_fleet",
+           "run_study", "run_task", "sensor_option", "studies", "submit_ordered", "tasks", "write_fleet_report",
+           "write_table"]

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from selfcal import registry
+from selfcal.core.progress import quiet
 from selfcal.pipelines.fleet.manifest import FleetError, FleetItem, fleet_items
 
 log = logging.getLogger(__name__)
@@ -50,11 +51,11 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         yield client
 
 
-def submit_ordered(client, function: Callable, arguments: list[tuple], progress: Callable | None = None,
-                   keys: list[str] | None = None) -> list:
+def submit_ordered(client, function: Callable, arguments: list[tuple], progress: Callable = quiet,
+                   keys: list[str] | None = None, what: str = "tasks") -> list:
     """Run ``function(*args)`` for every tuple of ``arguments`` on ``client``; results in the same order.
 
-    ``progress(done, total, result_or_exception)`` is called as each one finishes (in completion order).
+    ``progress(what, done, total)`` is called as each one finishes (:mod:`selfcal.core.progress`).
     An exception raised by a task (or a lost worker) is returned in its place, never raised: the caller
     decides what a failure means.
     """
@@ -65,14 +66,14 @@ def submit_ordered(client, function: Callable, arguments: list[tuple], progress:
                for args, key in zip(arguments, keys or [None] * len(arguments))]
     index = {future.key: i for i, future in enumerate(futures)}
     results: list = [None] * len(futures)
+    progress(what, 0, len(futures))
     for done, future in enumerate(as_completed(futures), start=1):
         try:
             value = future.result()
         except Exception as err:  # a task error or a lost worker: recorded, the rest goes on
             value = err
         results[index[future.key]] = value
-        if progress:
-            progress(done, len(futures), value)
+        progress(what, done, len(futures))
         future.release()
     return results
 
@@ -156,30 +157,9 @@ class FleetResult:
         return int((~self.table["ok"].astype(bool)).sum())
 
 
-def run_fleet(source, task: str, options: dict | None = None, scheduler: str | None = None,
-              workers: int | None = None, progress: Callable | None = None, client=None) -> FleetResult:
-    """Run ``task`` on every recording of ``source`` (folder or manifest) on dask; see the module docstring.
-
-    Parameters
-    ----------
-    source : str or Path
-        Folder of recordings, a recording, or a manifest (YAML / CSV).
-    task : str
-        A name in :func:`tasks`.
-    options : dict, optional
-        Options for every recording (the manifest's own override them).
-    scheduler, workers :
-        See :func:`dask_client`; ignored when ``client`` is given.
-    progress : callable, optional
-        ``progress(done, total, row)`` as each recording finishes.
-    client : distributed.Client, optional
-        An open client to use (and leave open).
-
-    Returns
-    -------
-    FleetResult
-    """
-    import pandas as pd
+def fleet_plan(source, task: str, options: dict | None = None) -> tuple[Task, list[FleetItem]]:
+    """The task and the recordings of a fleet, checked before any cluster starts: an unknown task, an option the
+    task does not take or a required one missing is a :class:`FleetError`."""
     known = tasks()
     if task not in known:
         raise FleetError(f"unknown task {task!r}; known: {', '.join(sorted(known))}")
@@ -194,19 +174,42 @@ def run_fleet(source, task: str, options: dict | None = None, scheduler: str | N
         if missing:
             raise FleetError(f"{item.name}: task {task} needs the option(s) {', '.join(missing)} "
                              f"(e.g. --{missing[0].replace('_', '-')} ...)")
+    return spec, items
+
+
+def run_fleet(source, task: str, options: dict | None = None, scheduler: str | None = None,
+              workers: int | None = None, progress: Callable = quiet, client=None) -> FleetResult:
+    """Run ``task`` on every recording of ``source`` (folder or manifest) on dask; see the module docstring.
+
+    Parameters
+    ----------
+    source : str or Path
+        Folder of recordings, a recording, or a manifest (YAML / CSV).
+    task : str
+        A name in :func:`tasks`.
+    options : dict, optional
+        Options for every recording (the manifest's own override them).
+    scheduler, workers :
+        See :func:`dask_client`; ignored when ``client`` is given.
+    progress : callable, optional
+        ``progress("recordings", done, total)`` as each recording finishes (:mod:`selfcal.core.progress`).
+    client : distributed.Client, optional
+        An open client to use (and leave open).
+
+    Returns
+    -------
+    FleetResult
+    """
+    import pandas as pd
+    spec, items = fleet_plan(source, task, options)
     start = time.perf_counter()
-
-    def wrapped(done, total, value):
-        if progress:
-            progress(done, total, value if isinstance(value, dict) else {"ok": False, "error": one_line(value)})
-
     with contextlib.ExitStack() as stack:
         if client is None:
             client = stack.enter_context(dask_client(scheduler, workers))
         n_workers = len(client.scheduler_info().get("workers", {}))
         run_id = uuid.uuid4().hex[:8]  # keys unique per run: a client may run the same fleet twice
         keys = [f"{task}-{run_id}-{i}-{item.name}" for i, item in enumerate(items)]
-        values = submit_ordered(client, run_task, [(spec, item) for item in items], wrapped, keys)
+        values = submit_ordered(client, run_task, [(spec, item) for item in items], progress, keys, "recordings")
     rows = [value if isinstance(value, dict) else
             {"name": item.name, "recording": str(item.path), "task": task, "ok": False, "error": one_line(value),
              "seconds": math.nan}  # the task itself never returned: the worker died or the task was lost

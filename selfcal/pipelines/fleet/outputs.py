@@ -117,6 +117,20 @@ def _png(fig) -> bytes:
     return buffer.getvalue()
 
 
+RESULT_COLUMNS = ("findings", "effects", "final_model")  # what a task found per recording (the audit's columns)
+
+
+def per_recording(table):
+    """One row per recording for the report: name, ok, error (empty when it ran), seconds, and the columns that
+    say what was found (``effects``: ``none`` for a recording that ran and showed none)."""
+    view = table[["name", "ok", "error", "seconds"] + [c for c in RESULT_COLUMNS if c in table.columns]].copy()
+    ok = view["ok"].astype(bool)
+    view["error"] = view["error"].where(~ok & view["error"].notna(), "")
+    if "effects" in view.columns:
+        view["effects"] = view["effects"].where(~ok | (view["effects"].fillna("") != ""), "none").fillna("")
+    return view
+
+
 def write_fleet_report(result, path) -> Path:
     """A short report: counts, failures, per-column statistics, histograms.
 
@@ -142,6 +156,9 @@ def write_fleet_report(result, path) -> Path:
         if not stats.empty:
             lines += ["## Summary statistics (successful recordings)", "", stats.to_markdown()
                       if _has_tabulate() else "```\n" + stats.to_string() + "\n```", ""]
+        recordings = per_recording(table)
+        lines += ["## Recordings", "", recordings.to_markdown(index=False) if _has_tabulate()
+                  else "```\n" + recordings.to_string(index=False, na_rep="") + "\n```", ""]
         if fig is not None:
             png_path = path.with_suffix(".png")
             atomic_write_bytes(png_path, _png(fig))
@@ -159,7 +176,8 @@ def write_fleet_report(result, path) -> Path:
     if fig is not None:
         parts.append("<h2>Histograms</h2><img alt='histograms' src='data:image/png;base64,"
                      + base64.b64encode(_png(fig)).decode() + "'>")
-    parts.append("<h2>Table</h2>" + table[["name", "ok", "error", "seconds"]].to_html(index=False)
+    parts.append("<h2>Recordings</h2>" + per_recording(table).to_html(index=False, na_rep="",
+                                                                      float_format=lambda x: f"{x:.1f}")
                  + "</body></html>\n")
     return atomic_write_text(path, "\n".join(parts))
 

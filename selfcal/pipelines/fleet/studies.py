@@ -8,6 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from selfcal import registry
+from selfcal.core.progress import quiet
 from selfcal.pipelines.fleet.engine import dask_client, submit_ordered
 
 
@@ -44,7 +45,7 @@ def _run_block(study: Study, n_runs: int, first_seed: int, params: dict):
 
 def run_study(study: str | Study, n_runs: int, first_seed: int = 1000, block_size: int | None = None,
               client=None, scheduler: str | None = None, workers: int | None = None,
-              progress: Callable | None = None, **params):
+              progress: Callable = quiet, **params):
     """Run a Monte Carlo study on dask: seeds ``first_seed .. first_seed + n_runs - 1`` in blocks.
 
     Parameters
@@ -78,7 +79,7 @@ def run_study(study: str | Study, n_runs: int, first_seed: int = 1000, block_siz
         arguments = [(spec, min(size, n_runs - s), first_seed + s, params) for s in starts]
         run_id = uuid.uuid4().hex[:8]
         keys = [f"{spec.name}-{run_id}-{first_seed + s}-{min(size, n_runs - s)}" for s in starts]
-        blocks = submit_ordered(client, _run_block, arguments, progress, keys)
+        blocks = submit_ordered(client, _run_block, arguments, progress, keys, "blocks of seeds")
     for block in blocks:
         if isinstance(block, BaseException):
             raise block

@@ -9,7 +9,6 @@ a note, fewer than three scenes are refused.
 """
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,6 @@ from selfcal.io.recording import Recording, RecordingError
 from selfcal.pipelines.qc.checks import run_qc
 from selfcal.pipelines.qc.spec import QCSpec
 
-log = logging.getLogger(__name__)
 
 
 def _lidar_sensor(recording: Recording, sensors: list[str] | None) -> str:
@@ -58,7 +56,7 @@ def read_sphere_scans(recording: Recording, sensors: list[str] | None = None) ->
         if not file.is_file():
             raise RecordingError(f"{where}: missing point file {file.name}")
         loaded = read_point_cloud(file, drop_nonfinite=True)
-        found = run_qc(loaded, spec, progress=log.debug).spheres
+        found = run_qc(loaded, spec).spheres
         if not found:
             notes.append(f"{file.name}: no sphere found; scene left out")
             continue

@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import open3d as o3d
 
+from selfcal.core.progress import quiet
 from selfcal.io.pointcloud import LoadedCloud, PointCloudError, points_of
 from selfcal.pipelines.qc.detect import detection_cloud, find_planes
 from selfcal.pipelines.qc.figures import (DeviationResult, PlaneResult, SphereResult, measure_deviation,
@@ -130,8 +131,9 @@ def _check(name, value, tolerance, note="", absolute=True, unit="m") -> Check:
 # the order of the report (PF and PS per sphere, SD per pair, F per plane, deviation).
 
 @contextmanager
-def _timed(seconds: dict[str, float], stage: str):
-    """Records the wall time of the block as ``seconds[stage]``."""
+def _timed(seconds: dict[str, float], stage: str, progress):
+    """Announces the block as a stage (``progress``) and records its wall time as ``seconds[stage]``."""
+    progress(stage.replace("_", " "))
     start = time.perf_counter()
     yield
     seconds[stage] = time.perf_counter() - start
@@ -259,7 +261,7 @@ def deviation_checks(deviation: DeviationResult | None, spec: QCSpec) -> list[Ch
 
 
 def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMesh | None = None,
-           reference_name: str | None = None, progress=log.info) -> QCResult:
+           reference_name: str | None = None, progress=quiet) -> QCResult:
     """Quality control of a scan: every figure the scene supports, checked against the spec's tolerances.
 
     Parameters
@@ -273,7 +275,7 @@ def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMe
     reference_name : str, optional
         For the report.
     progress : callable
-        Receives one line per stage.
+        ``progress(stage)`` as each stage starts (:mod:`selfcal.core.progress`).
 
     Returns
     -------
@@ -284,19 +286,19 @@ def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMe
     warnings: list[str] = []
     start = time.perf_counter()
     points = scan_points(loaded, warnings)
-    with _timed(seconds, "downsample_normals"):
+    with _timed(seconds, "downsample_normals", progress):
         det = detection_cloud(loaded.cloud, spec.detection)
-    progress(f"detection cloud: {len(det.points)} of {len(points)} points (voxel {spec.detection.voxel_m} m)")
-    with _timed(seconds, "plane_detection"):
+    log.info(f"detection cloud: {len(det.points)} of {len(points)} points (voxel {spec.detection.voxel_m} m)")
+    with _timed(seconds, "plane_detection", progress):
         plane_models, on_plane = detection_planes(det, spec)
-    with _timed(seconds, "spheres"):
+    with _timed(seconds, "spheres", progress):
         spheres = measure_spheres(points, det, on_plane, spec, warnings)
-    progress(f"{len(spheres)} sphere(s) in {seconds['spheres']:.1f} s")
+    log.info(f"{len(spheres)} sphere(s) in {seconds['spheres']:.1f} s")
     checks = sphere_checks(spheres, spec, warnings) + sphere_spacing_checks(spheres, spec)
-    with _timed(seconds, "planes"):
+    with _timed(seconds, "planes", progress):
         planes = measure_planes(points, plane_models, spec.planes, warnings)
         checks += flatness_checks(planes, spec)
-    with _timed(seconds, "deviation"):
+    with _timed(seconds, "deviation", progress):
         deviation = measure_deviation(points, reference, spec, warnings)
         checks += deviation_checks(deviation, spec)
     seconds["total"] = time.perf_counter() - start

@@ -25,6 +25,19 @@ IMAGE_PIXELS = 600  # long side of the rasterised deviation map
 IMAGE_MAX_POINTS = 2_000_000
 
 
+LABEL_OFFSETS_PT = ((6, 6), (6, -6), (-6, 6), (-6, -6))  # up-right first, then the other three corners
+
+
+def label_offsets_pt(centres: np.ndarray, near: float) -> list[tuple[int, int]]:
+    """An offset (points) for the label of each centre (N, 2): labels of centres closer than ``near`` (same
+    unit as the centres) to one already placed go to a corner that one does not use, so they do not overlap."""
+    chosen: list[tuple[int, int]] = []
+    for i, c in enumerate(centres):
+        used = {chosen[j] for j in range(i) if np.linalg.norm(centres[j] - c) < near}
+        chosen.append(next((o for o in LABEL_OFFSETS_PT if o not in used), LABEL_OFFSETS_PT[i % 4]))
+    return chosen
+
+
 def deviation_png(result: QCResult, dpi: int = 110) -> bytes | None:
     """PNG bytes of the deviation map and histogram; None without a reference (or no point on it)."""
     dev = result.deviation
@@ -62,9 +75,12 @@ def deviation_png(result: QCResult, dpi: int = 110) -> bytes | None:
     ax.set_xlabel("first principal axis [m]")
     ax.set_ylabel("second principal axis [m]")
     ax.set_title("signed deviation from the reference (mean per pixel)")
-    for sphere in result.spheres:
-        c = (sphere.centre_fit.center_m - mean) @ axes
-        ax.annotate(sphere.name, c, color="k", ha="center", va="center", fontsize=8)
+    centres = np.array([(s.centre_fit.center_m - mean) @ axes for s in result.spheres]).reshape(-1, 2)
+    for sphere, c, (dx, dy) in zip(result.spheres, centres, label_offsets_pt(centres, 0.08 * extent.max())):
+        ax.plot(*c, "k+", ms=6, mew=1)
+        ax.annotate(sphere.name, c, xytext=(dx, dy), textcoords="offset points", color="k", fontsize=8,
+                    ha="left" if dx > 0 else "right", va="bottom" if dy > 0 else "top",
+                    bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 0.5})
     cbar = fig.colorbar(im, ax=ax, fraction=0.04)
     cbar.set_label("deviation [mm]")
     hx.hist(np.clip(d * mm, -3 * limit * mm, 3 * limit * mm), bins=120, color="#4a7ab5")
