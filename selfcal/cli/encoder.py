@@ -108,7 +108,14 @@ def _read_calibration(path) -> tuple[dict, object]:
     if calibration.get("covariance_file"):
         cov_path = Path(path).parent / calibration["covariance_file"]
         if cov_path.is_file():
-            covariance = np.load(cov_path, allow_pickle=False)
+            try:
+                covariance = np.load(cov_path, allow_pickle=False)
+            except (ValueError, OSError, EOFError) as err:  # truncated: the run that wrote it was killed, disk full
+                raise EncoderRecordingError(f"{cov_path}: not a readable covariance ({' '.join(str(err).split())})"
+                                            ) from None
+            if covariance.ndim != 2 or covariance.shape[0] != covariance.shape[1] or not np.isfinite(covariance).all():
+                raise EncoderRecordingError(f"{cov_path}: expected a finite square covariance, got shape "
+                                            f"{covariance.shape}")
         else:
             log.warning("%s not found: sigmas without the calibration's own uncertainty", cov_path)
     return calibration, covariance

@@ -118,6 +118,13 @@ def main(argv=None) -> int:
     except Terminated:
         print("selfcal: terminated", file=sys.stderr)
         return 143
+    except Exception as err:  # noqa: BLE001 - the last line of defence: a bug, still one line (traceback under -v)
+        if "-v" in (argv if argv is not None else sys.argv[1:]) or "--verbose" in (argv or sys.argv[1:]):
+            import traceback
+            traceback.print_exc()
+        print(f"selfcal: internal error ({type(err).__name__}): {' '.join(str(err).split())[:300]}; this is a bug, "
+              "please report it with the command (-v shows where)", file=sys.stderr)
+        return 2
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -22,9 +22,10 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
-from selfcal.graphs import scan as gs
 from selfcal.core.progress import quiet
+from selfcal.core.sanity import imu_problems
 from selfcal.core.solve import DegenerateDataError
+from selfcal.graphs import scan as gs
 from selfcal.io.camera import read_camera
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import scan as ms
@@ -102,6 +103,7 @@ def read_scan(recording: Recording, scan_name: str = "scan0", ins_name: str = "i
     need = [c for c in ("p_WI_x", "q_WI_w", "v_WI_x", "w_RS_S_x", "a_RS_S_x") if c not in ins.values]
     if need:
         raise RecordingError(f"{where}/{ins_name}/data.csv: missing columns {', '.join(need)}")
+    check_ins(f"{where}/{ins_name}", ins, scan.t_ns)
     folder = scan.folder
     pattern = meta.get("file_pattern", "{timestamp}.npy")
     points = []
@@ -109,7 +111,10 @@ def read_scan(recording: Recording, scan_name: str = "scan0", ins_name: str = "i
         file = Path(folder) / pattern.format(timestamp=int(ts)) if folder is not None else None
         if file is None or not file.is_file():
             raise RecordingError(f"{where}/{scan_name}: missing point file {pattern.format(timestamp=int(ts))}")
-        p = np.load(file).astype(float)
+        try:
+            p = np.load(file, allow_pickle=False).astype(float)
+        except (ValueError, OSError, EOFError) as err:  # a truncated or foreign file
+            raise RecordingError(f"{file}: not a readable numpy array ({' '.join(str(err).split())})") from None
         if p.ndim != 2 or p.shape[1] != 3:
             raise RecordingError(f"{file}: expected an (k, 3) array of points, got shape {p.shape}")
         bad = ~np.isfinite(p).all(axis=1)
@@ -136,6 +141,22 @@ def read_scan(recording: Recording, scan_name: str = "scan0", ins_name: str = "i
                     np.column_stack([v[f"w_RS_S_{a}"] for a in "xyz"]), np.column_stack([v[f"a_RS_S_{a}"] for a in "xyz"]),
                     np.array(meta["imu_R_vision"], float), np.array(meta["imu_t_vision"], float), cams,
                     float(meta.get("pixel_sigma", 0.1)), float(meta["sphere_radius_m"]), prior, jitter)
+
+
+def check_ins(where: str, ins, scan_t_ns: np.ndarray) -> None:
+    """Refuse an INS that cannot place the scan: frames outside its record (INS stamps in us read as ns, a 2-row
+    INS: every point was "corrected" with an extrapolated pose), or its inertial data failing the IMU's physical
+    checks (a gap, a unit, a dead channel: :func:`selfcal.core.sanity.imu_problems`)."""
+    outside = (scan_t_ns < ins.t_ns[0]) | (scan_t_ns > ins.t_ns[-1])
+    if outside.any():
+        raise RecordingError(f"{where}: {int(outside.sum())} of {scan_t_ns.size} scan frames lie outside the INS "
+                             f"record ({(ins.t_ns[-1] - ins.t_ns[0]) * 1e-9:.6g} s long): no pose to place them with; "
+                             "INS timestamps in ns?")
+    v = ins.values
+    problems = imu_problems((ins.t_ns - ins.t_ns[0]) * 1e-9, np.column_stack([v[f"w_RS_S_{a}"] for a in "xyz"]),
+                            np.column_stack([v[f"a_RS_S_{a}"] for a in "xyz"]))
+    if problems:
+        raise RecordingError(f"{where}: {problems[0]}")
 
 
 @dataclass
