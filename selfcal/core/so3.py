@@ -1,12 +1,12 @@
 """Rotation helpers on SO(3) that scipy does not provide: hat, right Jacobian, integration with Jacobians.
 
 Conventions match GTSAM: perturbations are on the right, ``R(x + dx) = R(x) Exp(J dx)``.
-Exp and Log themselves come from :class:`scipy.spatial.transform.Rotation`.
+Exp and Log themselves come from :class:`scipy.spatial.transform.Rotation`, imported when first used (scipy.spatial
+costs ~0.5 s of start-up that the online tracker, which needs neither, would pay).
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def hat(v: np.ndarray) -> np.ndarray:
@@ -21,11 +21,13 @@ def hat(v: np.ndarray) -> np.ndarray:
 
 def exp(phi: np.ndarray) -> np.ndarray:
     """Rotation matrix(es) Exp(phi) for rotation vector(s) phi in rad."""
+    from scipy.spatial.transform import Rotation
     return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
 
 
 def log(R: np.ndarray) -> np.ndarray:
     """Rotation vector(s) Log(R) in rad."""
+    from scipy.spatial.transform import Rotation
     return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
 
 

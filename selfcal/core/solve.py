@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import gtsam
 import numpy as np
@@ -112,3 +113,19 @@ def dense_marginals(graph, values, keys, what: str) -> dict[int, np.ndarray]:
     tangent = values.zeroVectors()
     return {k: covariance[offsets[k]:offsets[k] + tangent.at(k).size, offsets[k]:offsets[k] + tangent.at(k).size]
             for k in keys}
+
+
+def lag_stamp_s(t_s: float, step_s: float) -> float:
+    """The timestamp under which a fixed-lag smoother keeps a variable of time ``t_s``: ``t_s`` rounded up to a
+    multiple of ``step_s`` (0: ``t_s`` itself).
+
+    ``gtsam.IncrementalFixedLagSmoother`` marginalises what falls behind the lag at every update, and each
+    marginalisation re-eliminates the whole window (its ordering constraint puts the old variables at the
+    leaves), which also clears the cached marginals a covariance of the newest state needs: the cost of an
+    update and of its covariance grows with the window.  Stamped on a grid, variables leave in blocks once per
+    ``step_s``; between, an update re-eliminates only the top of the tree (the newest variables, ordered last).
+    The window then holds between ``lag`` and ``lag + step_s`` of history: never less than asked.
+    """
+    if step_s <= 0:
+        return t_s
+    return math.ceil(t_s / step_s - 1e-9) * step_s

@@ -29,7 +29,7 @@ from scipy.signal import savgol_filter
 from selfcal.core import inertial
 from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
 from selfcal.core.progress import quiet
-from selfcal.core.solve import optimize
+from selfcal.core.solve import lag_stamp_s, optimize
 from selfcal.models import ship
 
 R_KEY, B_KEY, V_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B, gtsam.symbol_shorthand.V
@@ -329,10 +329,13 @@ class OnlineShip:
     marginal covariance of the attitude (rad^2, tangent space of R_W_S).
     """
 
-    def __init__(self, graph: ShipGraph, lag_s: float = 60.0):
+    def __init__(self, graph: ShipGraph, lag_s: float = 60.0, lag_step_s: float = 6.0):
         params = gtsam.ISAM2Params()
         params.setFactorization("QR")  # Cholesky met indeterminate systems on long, tightly linked chains
         self.graph, self.smoother = graph, gtsam.IncrementalFixedLagSmoother(lag_s, params)
+        # keyframes leave the window in blocks of lag_step_s (core.solve.lag_stamp_s): one update in 30
+        # re-eliminates the whole window instead of each, and the newest attitude's covariance stays cheap
+        self.lag_step_s = lag_step_s
         self.estimate = gtsam.Values()
 
     def add(self, frame: Keyframe, covariance: bool = False):
@@ -343,7 +346,7 @@ class OnlineShip:
         for key in (R_KEY(k), self.graph.bias_key(frame.t_s), self.graph.last_speed_key, LEVER_ARM_KEY,
                     SPEED_SCALE_KEY, GYRO_SCALE_KEY):
             if key is not None and (v.exists(key) or self.estimate.exists(key)):
-                stamps.insert((key, frame.t_s))
+                stamps.insert((key, lag_stamp_s(frame.t_s, self.lag_step_s)))
         self.smoother.update(g, v, stamps)
         self.estimate = self.smoother.calculateEstimate()
         yaw, pitch, roll = self.estimate.atRot3(R_KEY(k)).ypr()

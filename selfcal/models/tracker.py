@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from selfcal.core import so3
 from selfcal.core.inertial import tilt_from_specific_force
@@ -50,11 +49,13 @@ E_Z = np.array([0.0, 0.0, 1.0])
 
 def rotation_from_euler(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     """``R_W_B = Rz(yaw) Ry(pitch) Rx(roll)``, (3, 3) or (N, 3, 3)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs the online tracker ~0.5 s start-up
     return Rotation.from_euler("ZYX", np.stack([yaw_rad, pitch_rad, roll_rad], axis=-1)).as_matrix()
 
 
 def euler_from_rotation(R_W_B) -> np.ndarray:
     """(roll, pitch, yaw) in rad of ``R_W_B`` (ZYX), shape (..., 3)."""
+    from scipy.spatial.transform import Rotation
     ypr = Rotation.from_matrix(np.asarray(R_W_B)).as_euler("ZYX")
     return ypr[..., ::-1]
 
@@ -216,5 +217,14 @@ def attitude_from_tilt_and_beam(roll_rad: float, pitch_rad: float, beam_B, beam_
     problem with the gravity pair as the primary (infinitely weighted) vector, i.e. TRIAD.
     """
     up_B = up_direction_B(roll_rad, pitch_rad)
-    rot, _ = Rotation.align_vectors(np.array([E_Z, beam_W]), np.array([up_B, beam_B]), weights=[np.inf, 1.0])
-    return rot.as_matrix()
+    # TRIAD: the same orthonormal triad (primary, primary x secondary, their cross product) in both frames;
+    # R_W_B = T_W T_B^T takes up_B onto E_Z exactly and beam_B into the plane of E_Z and beam_W
+    return _triad(E_Z, np.asarray(beam_W, dtype=float)) @ _triad(up_B, np.asarray(beam_B, dtype=float)).T
+
+
+def _triad(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
+    """(3, 3) columns: unit ``primary``, unit ``primary x secondary``, their cross product."""
+    t1 = primary / np.linalg.norm(primary)
+    t2 = cross(t1, secondary)
+    t2 = t2 / np.linalg.norm(t2)
+    return np.column_stack([t1, t2, cross(t1, t2)])

@@ -11,6 +11,7 @@ killed tracker leaves every pose computed before the kill (atomic whole-file wri
 """
 from __future__ import annotations
 
+import bisect
 import json
 import logging
 import time
@@ -35,6 +36,7 @@ class LatencyHistogram:
     100 s (a percentile is good to 1 %), the exact maximum.  A list of every latency grew 1.8 KB per pose."""
 
     EDGES = np.geomspace(1e-6, 100.0, 1159)  # ratio 1.01 between edges
+    _EDGES = EDGES.tolist()  # bisect on a list: np.searchsorted on one float costs ~4 us, per sample
 
     def __init__(self):
         self.counts = np.zeros(len(self.EDGES) + 1, dtype=np.int64)
@@ -42,7 +44,7 @@ class LatencyHistogram:
         self.n = 0
 
     def add(self, seconds: float) -> None:
-        self.counts[int(np.searchsorted(self.EDGES, seconds))] += 1
+        self.counts[bisect.bisect_left(self._EDGES, seconds)] += 1  # = np.searchsorted(EDGES, seconds)
         self.max_s = seconds if self.n == 0 else max(self.max_s, seconds)
         self.n += 1
 

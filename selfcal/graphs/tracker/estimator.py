@@ -13,6 +13,7 @@ import gtsam
 import numpy as np
 
 from selfcal.core import inertial
+from selfcal.core.solve import lag_stamp_s
 from selfcal.factors import tracker as ft
 from selfcal.graphs.tracker.alignment import Pending, bearing_at_keyframe, navstate_values
 from selfcal.graphs.tracker.bookkeeping import FactorBook
@@ -199,7 +200,8 @@ class TrackerEstimator:
         """One smoother update (new keyframe, its factors, the factors to remove); remembers the new indices."""
         to_remove = self._book.removals()
         if self.options.mode == "fixed-lag":
-            stamps = {key: (self.kf_t_ns - self.t0_ns) * 1e-9 for key in (X(k), V(k), B(k))}
+            stamp = lag_stamp_s((self.kf_t_ns - self.t0_ns) * 1e-9, self.options.lag_step_s)
+            stamps = {key: stamp for key in (X(k), V(k), B(k))}
             self._smoother.update(graph, values, stamps, to_remove)
             indices = self._smoother.getISAM2Result().getNewFactorsIndices()
         else:

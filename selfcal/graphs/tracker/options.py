@@ -95,6 +95,9 @@ UNGATED = GatingOptions(chi2=False, eigen=False, frozen_samples=0)  # every samp
 class TrackerOptions:
     keyframe_s: float = 0.1
     lag_s: float = 5.0  # longer than the detection window, so a detected soft fault's factors can be removed
+    # keyframes leave the fixed-lag window in blocks of this much (core.solve.lag_stamp_s): the window holds
+    # lag_s to lag_s + lag_step_s, and only one update in lag_step_s / keyframe_s re-eliminates all of it
+    lag_step_s: float = 1.0
     mode: str = "fixed-lag"  # 'fixed-lag' | 'isam2'
     gating: GatingOptions = GatingOptions()
     keep_graph: bool = False  # keep every factor and keyframe for batch_smooth (memory grows with the run)

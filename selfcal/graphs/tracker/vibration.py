@@ -13,7 +13,7 @@ from functools import lru_cache
 
 import gtsam
 import numpy as np
-from scipy import stats
+from scipy.special import chdtri  # chi2 upper quantile; scipy.stats would cost ~1 s of start-up
 
 from selfcal.factors import tracker as ft
 from selfcal.graphs.tracker.options import GatingOptions, SensorNoise
@@ -26,7 +26,7 @@ UP_BASIS = ft.UP_W.basis()  # (3, 2): the inclinometer factor's error is express
 @lru_cache(maxsize=64)
 def variance_ratio(dof: int, alpha: float) -> float:
     """chi2(dof).ppf(1 - alpha) / dof: a sample variance above ``white`` times this is significant at ``alpha``."""
-    return float(stats.chi2.ppf(1.0 - alpha, dof) / dof)
+    return float(chdtri(dof, alpha) / dof)
 
 
 class AccelHistory:
