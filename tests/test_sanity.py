@@ -271,3 +271,85 @@ def test_sigterm_during_an_audit_writes_neither_file_and_no_temporaries(tmp_path
     err = proc.communicate(timeout=120)[1]
     assert proc.returncode == 143 and err.strip() == "selfcal: terminated", err
     assert os.listdir(out) == []
+
+
+# --- more regressions from the issue: scan INS, truncated files, a 2-row pair, the last line of defence ----------
+
+@pytest.fixture(scope="module")
+def small_scan(tmp_path_factory):
+    path = tmp_path_factory.mktemp("scan") / "rec"
+    assert main(["simulate", "scan", "--out", str(path), "--length", "6", "--spheres", "4", "--seed", "1"]) == 0
+    return path
+
+
+def one_line_refusal(argv, capsys, words):
+    code = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and words in err[0] and "Traceback" not in err[0], err
+
+
+@pytest.mark.parametrize("mutation", ["ins stamps in us", "2-row ins", "truncated frame file"])
+def test_a_scan_the_ins_cannot_place_is_refused(small_scan, tmp_path, capsys, mutation):
+    """Issue: INS timestamps in microseconds, or a 2-row INS: all 277,734 points "corrected", exit 0; a truncated
+    scan .npy: a ValueError traceback."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(small_scan, rec)
+    csv = rec / "ins0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    if mutation == "ins stamps in us":
+        lines = lines[:1] + [f"{int(l.split(',', 1)[0]) // 1000},{l.split(',', 1)[1]}" for l in lines[1:]]
+        words = "outside the INS record"
+    elif mutation == "2-row ins":
+        lines = lines[:3]
+        words = "outside the INS record"
+    else:
+        frame = sorted((rec / "scan0").glob("*.npy"))[10]
+        frame.write_bytes(frame.read_bytes()[:100])
+        words = "not a readable numpy array"
+    csv.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "corrected.ply"
+    one_line_refusal(["smooth", "scan", str(rec), "--out", str(out)], capsys, words)
+    assert not out.exists()
+
+
+def test_a_truncated_encoder_covariance_is_one_line(encoder_recording, tmp_path, capsys):
+    cal = tmp_path / "cal" / "cal.yaml"
+    assert main(["calibrate", "encoder", str(encoder_recording), "--out", str(cal)]) == 0
+    capsys.readouterr()
+    cov = cal.parent / yaml_safe_load(cal)["covariance_file"]
+    cov.write_bytes(cov.read_bytes()[:200])
+    one_line_refusal(["measure", "encoder", str(encoder_recording), "--calibration", str(cal), "--out",
+                      str(tmp_path / "angles.csv")], capsys, "not a readable covariance")
+
+
+def yaml_safe_load(path):
+    import yaml
+    return yaml.safe_load(path.read_text())
+
+
+def test_a_pair_of_two_rows_is_refused(tmp_path, capsys):
+    """Issue: ``calibrate imu-pair`` on 2 rows: a padlen ValueError traceback."""
+    src = DATA / "ansfl_quadrotor_horizontal_1"
+    rec = tmp_path / "rec"
+    for imu in ("imu0", "imu1"):
+        (rec / imu).mkdir(parents=True)
+        (rec / imu / "data.csv").write_text("\n".join((src / imu / "data.csv").read_text().splitlines()[:3]) + "\n")
+        (rec / imu / "sensor.yaml").write_text((src / imu / "sensor.yaml").read_text())
+    one_line_refusal(["calibrate", "imu-pair", str(rec), "--out", str(tmp_path / "pair.yaml")], capsys,
+                     "a pair calibration needs at least")
+
+
+def test_an_unforeseen_error_is_still_one_line(monkeypatch, capsys):
+    """The last line of defence: a bug anywhere ends as one line naming it (exit 2), the traceback only under -v."""
+    from selfcal.cli import main as cli_main
+
+    def broken(args):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(cli_main, "check_outputs_apart_from_inputs", broken)
+    assert cli_main.main(["calibrate", "imu", "nowhere"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "internal error (ZeroDivisionError)" in err[0], err
+    assert cli_main.main(["-v", "calibrate", "imu", "nowhere"]) == 2
+    assert "Traceback" in capsys.readouterr().err

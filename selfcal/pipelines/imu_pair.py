@@ -98,6 +98,9 @@ OPTIONAL = {
 }
 
 
+MIN_SAMPLES, MIN_DURATION_S = 50, 1.0  # the shortest static pose the pair graph uses; filters need 4 x order
+
+
 def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bool | None = None,
                        time_offset: bool | None = None, lowpass_hz: float | None = 5.0,
                        gains: bool | None = False) -> PairCalibration:
@@ -108,7 +111,13 @@ def calibrate_imu_pair(recording: Recording, imu0: str, imu1: str, lever_arm: bo
     ``gains`` (off by default) adds imu1's scale and non-orthogonality relative to imu0, for raw outputs that
     were not calibrated first: R is then the rotation part of the map between them (polar decomposition).
     """
-    problem = gp.problem_from_imus(recording.imu(imu0), recording.imu(imu1), lowpass_hz)
+    data0, data1 = recording.imu(imu0), recording.imu(imu1)
+    for data in (data0, data1):
+        if data.t_s.size < MIN_SAMPLES or data.t_s[-1] < MIN_DURATION_S:
+            raise DegenerateDataError(f"{data.name}: {data.t_s.size} samples over {data.t_s[-1]:.3g} s: a pair "
+                                      f"calibration needs at least {MIN_DURATION_S:g} s ({MIN_SAMPLES} samples) of "
+                                      "static poses or motion")
+    problem = gp.problem_from_imus(data0, data1, lowpass_hz)
     static, dynamic, dt0 = problem.static, problem.dynamic, problem.initial_dt_s
     if not static and dynamic is None:
         raise DegenerateDataError(f"{imu0}/{imu1}: no static poses and no motion found in the recording")
