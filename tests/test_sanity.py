@@ -353,3 +353,18 @@ def test_an_unforeseen_error_is_still_one_line(monkeypatch, capsys):
     assert len(err) == 1 and "internal error (ZeroDivisionError)" in err[0], err
     assert cli_main.main(["-v", "calibrate", "imu", "nowhere"]) == 2
     assert "Traceback" in capsys.readouterr().err
+
+
+def test_the_fault_counter_counts_only_what_a_fault_decision_removed():
+    """Issue: "removed after a soft-fault alarm 1266" on a run whose log holds no fault decision: the count
+    included provisional inclinometer factors replaced by their final (vibration-grown) form.  Without the
+    soft-fault detector there is no alarm, so nothing may count as removed after one; the replacements are counted
+    apart."""
+    from selfcal.graphs.tracker import GatingOptions, TrackerOptions
+    from selfcal.pipelines.tracker import smooth_tracker
+    from selfcal.sim.tracker import TrackerScenario
+    rec = TrackerScenario(duration_s=60.0, seed=3, burst_rate_per_min=6.0).measurements()
+    result = smooth_tracker(rec, mode="isam2", options=TrackerOptions(mode="isam2",
+                                                                      gating=replace(GatingOptions(), eigen=False)))
+    assert not [d for d in result.decisions if d.get("decision") == "fault"]
+    assert result.counts["removed"] == 0 and result.counts["replaced"] > 0, result.counts

@@ -44,7 +44,8 @@ def smooth(args) -> None:
                                 progress=progress)
     c = result.counts
     print(f"{len(result.t_ns)} poses in {result.seconds:.1f} s ({args.mode}); measurements accepted {c['accepted']}, "
-          f"rejected {c['rejected']}, held out {c['held_out']}, removed after a soft-fault alarm {c['removed']}")
+          f"rejected {c['rejected']}, held out {c['held_out']}, removed after a soft-fault alarm {c['removed']} "
+          f"(provisional factors replaced: {c['replaced']})")
     atomic_write_text(output(args.out), result.tum_text())
     print(f"trajectory: {args.out}")
     if args.log:

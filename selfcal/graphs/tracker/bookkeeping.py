@@ -24,7 +24,9 @@ class FactorBook:
         self.recent = {s: deque(maxlen=3 * int(np.ceil(options.lag_s / options.keyframe_s)) + 8) for s in SENSORS}
         self._removed_indices: set = set()  # bounded: duplicates only arise within the deferral (< 1 s)
         self._removed_order: deque = deque(maxlen=4096)
-        self.removed = 0  # factors removed from the smoother or dropped before entering it
+        self.removed = 0  # factors removed or dropped because of a fault decision (soft-fault alarm, faulty sensor)
+        self.replaced = 0  # provisional inclinometer factors replaced by their final form: no fault
+        self._fault_removals: set = set()  # indices named by remove_recent, until removed
         # [factor, tag, keyframe, removed, meta]: meta holds what the audit needs to rebuild the factor with
         # calibration effects (selfcal.audit.tracker)
         self.graph_log: list | None = [] if options.keep_graph else None
@@ -57,7 +59,10 @@ class FactorBook:
                 self._removed_indices.discard(self._removed_order[0])
             self._removed_order.append(i)
             self._removed_indices.add(i)
-        self.removed += len(to_remove)
+        faulty = sum(1 for i in to_remove if i in self._fault_removals)
+        self.removed += faulty
+        self.replaced += len(to_remove) - faulty
+        self._fault_removals.clear()
         if self.graph_log is not None:
             for i in to_remove:
                 self.graph_log[self._log_position[i]][3] = True
@@ -85,5 +90,7 @@ class FactorBook:
         o = self.options
         defer = int(np.ceil(self._deferral_s() / o.keyframe_s)) + 1
         margin = int(np.ceil(o.lag_s / o.keyframe_s)) - 2 - defer
-        self._to_remove.extend(idx for kf, idx in self.recent[sensor] if o.mode == "isam2" or k - kf < margin)
+        named = [idx for kf, idx in self.recent[sensor] if o.mode == "isam2" or k - kf < margin]
+        self._to_remove.extend(named)
+        self._fault_removals.update(named)
         self.recent[sensor].clear()

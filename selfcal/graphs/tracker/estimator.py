@@ -91,7 +91,7 @@ class TrackerEstimator:
 
     @property
     def counts(self) -> dict[str, int]:
-        return {**self._gate.counts, "removed": self._book.removed}
+        return {**self._gate.counts, "removed": self._book.removed, "replaced": self._book.replaced}
 
     @property
     def faulty(self) -> dict[str, bool]:
