@@ -368,3 +368,15 @@ def test_the_fault_counter_counts_only_what_a_fault_decision_removed():
                                                                       gating=replace(GatingOptions(), eigen=False)))
     assert not [d for d in result.decisions if d.get("decision") == "fault"]
     assert result.counts["removed"] == 0 and result.counts["replaced"] > 0, result.counts
+
+
+def test_qc_without_a_spec_finds_the_sphere_targets_not_the_tunnel(small_scan, tmp_path):
+    """Issue: ``qc`` without a spec reported 40 "spheres" in a scene with 10 (the tunnel vault fitted as R = 3 m,
+    walls at R = 800 m).  Without a nominal radius only scanner sphere targets (5 mm - 0.5 m radius) are spheres:
+    the simulated scan's 4 targets of 0.1 m, each within the detection's own tolerance of 5 mm."""
+    import json
+    cloud, report = tmp_path / "corrected.ply", tmp_path / "qc.json"
+    assert main(["smooth", "scan", str(small_scan), "--out", str(cloud)]) == 0
+    main(["qc", str(cloud), "--json", str(report)])
+    radii = [s["radius_m"] for s in json.loads(report.read_text())["spheres"]]
+    assert len(radii) == 4 and np.allclose(radii, 0.1, atol=0.005), radii

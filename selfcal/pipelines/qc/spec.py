@@ -32,6 +32,13 @@ class SphereTarget:
     centre_m: np.ndarray
 
 
+# Without a nominal radius or bounds, a sphere is a scanner's sphere target: reference spheres are made from 12.7 mm
+# (1/2 in) to 500 mm radius (VDI/VDE 2634-2 asks for spheres of 0.1-0.2 x the measuring volume's diagonal); a vault
+# or a wall fitted as a sphere of 3 m or 800 m is no target (the unbounded default reported 40 "spheres" in a tunnel
+# with 10).
+TARGET_RADIUS_RANGE_M = (0.005, 0.5)
+
+
 @dataclass
 class SphereSpec:
     """Sphere detection and evaluation settings (``spheres:`` in the spec YAML)."""
@@ -54,7 +61,7 @@ class SphereSpec:
             return self.radius_bounds_m
         if self.nominal_radius_m is not None:
             return 0.8 * self.nominal_radius_m, 1.2 * self.nominal_radius_m
-        return 0.0, np.inf
+        return TARGET_RADIUS_RANGE_M
 
     def gate(self) -> float:
         return self.evaluation_gate_m if self.evaluation_gate_m is not None else 3.0 * self.ransac_threshold_m
