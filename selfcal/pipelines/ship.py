@@ -1,14 +1,19 @@
 """Use case ``selfcal smooth ship``: a vessel recording in, attitude and gyro bias out (TUM trajectory)."""
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from selfcal.core import inertial
 from selfcal.core.progress import quiet
+from selfcal.core.sanity import GAP_FLOOR_S, GAP_PERIODS
 from selfcal.graphs.ship import SPEED_RATE_WINDOW_S, ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import ship
+
+log = logging.getLogger(__name__)
 
 SPEED_SOURCES = (("speed0", "speed_log"), ("gps0", "speed"))  # preferred first: the log measures through water
 
@@ -91,8 +96,15 @@ class OnlineShipTracker:
 
     def __init__(self, meta: dict[str, dict] | None = None, imu_name: str = "imu0",
                  options: ShipGraphOptions = ShipGraphOptions()):
+        self._meta = meta
+        self._start(meta, imu_name, options)
+
+    def _start(self, meta, imu_name, options) -> None:
         from selfcal.graphs.ship import OnlineShip, ShipGraph
         meta = (meta or {}).get(imu_name, {})
+        rate_hz = float(meta.get("rate_hz", 100.0))
+        # an IMU gap longer than this is data missing: nothing bridges it (the sanity checks' rule)
+        self._gap_s = max(GAP_PERIODS / rate_hz, GAP_FLOOR_S)
         self.imu_name, self.options = imu_name, options
         self.graph = ShipGraph(options, float(meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
                                float(meta.get("gyroscope_noise_density", 1e-4)),
@@ -120,6 +132,10 @@ class OnlineShipTracker:
                 return []
         if sensor != self.imu_name:
             return []
+        if self.t_s and t_s - self.t_s[-1] > self._gap_s:
+            log.warning("%s: %.3g s without samples before t = %d ns: the estimator starts over (no attitude is "
+                        "bridged across the gap)", self.imu_name, t_s - self.t_s[-1], t_ns)
+            self._start(self._meta, self.imu_name, self.options)
         self.t_s.append(t_s)
         self.gyro.append([values[c] for c in ("w_RS_S_x", "w_RS_S_y", "w_RS_S_z")])
         self.accel.append([values[c] for c in ("a_RS_S_x", "a_RS_S_y", "a_RS_S_z")])

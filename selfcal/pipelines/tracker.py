@@ -17,7 +17,8 @@ import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import accelerometer_tilt_at, inclinometer_problems, tracker_problems
+from selfcal.core.sanity import (GAP_FLOOR_S, GAP_PERIODS, accelerometer_tilt_at, inclinometer_problems,
+                                 tracker_problems)
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
 from selfcal.io.camera import read_camera
@@ -68,12 +69,21 @@ class OnlineTracker:
                  options: TrackerOptions | None = None):
         if options is None:
             options = TrackerOptions(mode=mode, gating=GatingOptions() if gating else UNGATED)
-        self.estimator = TrackerEstimator(noise or SensorNoise(), options)
+        self.noise, self.options = noise or SensorNoise(), options
+        self.estimator = TrackerEstimator(self.noise, options)
         self.ignored = 0
+        self.restarts = 0
         self.latency_s: list[float] = []
+        self._last_imu_ns: int | None = None
+        # an IMU gap longer than this is data missing: nothing bridges it (the sanity checks' rule)
+        self._gap_ns = int(1e9 * max(GAP_PERIODS / self.noise.imu_rate_hz, GAP_FLOOR_S))
 
     def push(self, sensor_name: str, t_ns: int, values: dict[str, float]) -> list[dict]:
         start = time.perf_counter()
+        if sensor_name == "imu0":
+            if self._last_imu_ns is not None and t_ns - self._last_imu_ns > self._gap_ns:
+                self._restart(t_ns)
+            self._last_imu_ns = t_ns
         e = self.estimator
         try:
             if sensor_name == "imu0":
@@ -96,6 +106,15 @@ class OnlineTracker:
                     o["covariance"] = np.asarray(o["covariance"]).tolist()
             self.latency_s.append(time.perf_counter() - start)
         return out
+
+    def _restart(self, t_ns: int) -> None:
+        """After an IMU gap the state cannot be propagated across: start over (a new estimator, initialised again
+        from the next samples), and say so once."""
+        gap_s = (t_ns - self._last_imu_ns) * 1e-9
+        log.warning("imu0: %.3g s without samples before t = %d ns: the estimator starts over (no pose is bridged "
+                    "across the gap)", gap_s, t_ns)
+        self.restarts += 1
+        self.estimator = TrackerEstimator(self.noise, self.options)
 
 
 def recording_events(recording: Recording):
