@@ -35,6 +35,9 @@ from selfcal.audit.terms import Coordinate
 from selfcal.core.solve import joint_covariance
 from selfcal.graphs.encoder import calibration as ge
 
+MAX_ROWS = 60_000  # diode samples the audit fits: above it, every k-th position (each fit and score test is
+# linear in the rows; the positions left still cover the disk)
+
 MEANINGS = {
     "prnu": "per-diode gain non-uniformity of the array (photo-response non-uniformity)",
     "temperature_scale": "image scale p changes with temperature (thermal expansion of the optics / housing)",
@@ -47,14 +50,13 @@ class EncoderAudit:
     folds = 2
     base_model = "ml"
 
-    def __init__(self, problem: ge.Problem, start: dict | None = None, max_rows: int = 60_000):
+    def __init__(self, problem: ge.Problem, start: dict | None = None, max_rows: int | None = None):
         self.problem = problem
         self.start = start or {}
         self.base_effects = ()
         used = problem.used_positions()
         n = problem.arrays[0].n
-        step = max(1, math.ceil(used.size * n * len(problem.arrays) / max_rows))
-        # the score test forms the dense Jacobian: keep its rows bounded (every k-th position)
+        step = max(1, math.ceil(used.size * n * len(problem.arrays) / (max_rows or MAX_ROWS)))
         self.positions = used[::step]
         base = self._solve(self._frames(None), ge.EncoderModel(), None)
         self.base_values = base[0]
