@@ -188,8 +188,10 @@ class EncoderAudit:
             for key, dim in keys:
                 values.insert(key, np.zeros(dim))
             groups.append([(key, np.arange(dim)) for key, dim in keys])
-        graph, _ = ge.build_graph(self.problem, model, values, fit.context["edges"], fit.context["frames"],
-                                  term_columns=self._term_columns(effects))
+        graph, layout = ge.build_graph(self.problem, model, values, fit.context["edges"], fit.context["frames"],
+                                       term_columns=self._term_columns(effects))
+        # an edge at the end of an image may come into view at the solution: a variable at its current angle
+        ge.insert_edges(values, layout.edge_vars, fit.context["edges"])
         return graph, values, groups
 
     def _key(self, candidate):
