@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from selfcal.audit import encoder as audit_encoder
 from selfcal.audit.engine import run_audit
 from selfcal.cli.main import main
 from selfcal.pipelines import encoder as pe
@@ -27,6 +28,29 @@ def test_null_recording_gives_no_finding():
     system, out = audit(EncoderScenario(seed=11, **TINY))
     assert out["findings"] == []
     assert out["final_model"] == ["ml"]
+    assert "information_fraction" in system.diagnostics["eccentricity"]
+
+
+def test_audit_reports_its_stages_through_the_progress_callback():
+    """What a long run is doing: base fit, its cross-validation, each search step, the final residual tests."""
+    sc = EncoderScenario(seed=11, **TINY)
+    rec, _ = sc.perturbed_measurements(0)
+    system = pe.audit_system(rec, frames={"array0": sc.perturbed_frames(0)})
+    messages = []
+    run_audit(system, progress=messages.append)
+    assert messages[0].startswith("fitting the base model") and messages[1].startswith("cross-validating")
+    assert messages[2].startswith("step 1 (catalog)")
+    assert any(m.startswith("step") and "(library)" in m for m in messages)
+    assert messages[-1].startswith("testing what remains")
+
+
+def test_recording_above_the_row_budget_is_audited_on_every_kth_position(monkeypatch):
+    """The default simulation (240 positions x 1024 diodes) is above the budget: the base fit, the calibration
+    estimate and the eccentricity check must all run on the same subset (they crashed on a missing position)."""
+    monkeypatch.setattr(audit_encoder, "MAX_ROWS", 24 * 64 // 2)
+    system, out = audit(EncoderScenario(seed=11, **TINY))
+    assert np.array_equal(system.positions, system.problem.used_positions()[::2])
+    assert out["findings"] == []
     assert "information_fraction" in system.diagnostics["eccentricity"]
 
 

@@ -182,7 +182,41 @@ class TrackerSmoothing:
         assert self.error_m(out) <= 2 * self.clean_error + 1e-3, mutation
 
 
-COMMANDS = {"calibrate imu": ImuCalibration, "smooth ship": ShipSmoothing, "smooth tracker": TrackerSmoothing}
+class PairCalibration:
+    """``calibrate imu-pair`` on an 8-pose two-IMU recording (imu0 mutated).  Accepted answers: the rotation
+    within twice the clean run's error plus 3 of its reported sigmas (the rotation's own chi-square scale)."""
+    argv = ("calibrate", "imu-pair")
+    suffix = "pair.yaml"
+
+    def __init__(self):
+        from selfcal.pipelines.imu_pair import pair_scenario
+        self.scenario = pair_scenario(seed=7)
+        self.recording = self.scenario.perturbed_measurements(7)
+        self.R_true = np.asarray(self.scenario.truth()["pair"]["rotation_imu0_imu1"], float)
+
+    def error_rad(self, out: Path) -> float:
+        from scipy.spatial.transform import Rotation
+        R = np.asarray(yaml.safe_load(out.read_text())["rotation_imu0_imu1"], float)
+        assert np.all(np.isfinite(R))
+        return float(Rotation.from_matrix(R @ self.R_true.T).magnitude())
+
+    def clean(self, out: Path) -> None:
+        self.clean_error = self.error_rad(out)
+        self.sigma = float(np.linalg.norm(yaml.safe_load(out.read_text())["rotation_sigma_rad"]))
+
+    def good_enough(self, out: Path, mutation) -> None:
+        assert self.error_rad(out) <= 2 * self.clean_error + 3 * self.sigma, mutation
+
+
+class TrackerOnline(TrackerSmoothing):
+    """``track --replay`` (the online path) on the same run; the same rule as ``smooth tracker``."""
+    argv = ("track", "--system", "tracker", "--replay")
+    suffix = "online.tum"
+    out_option = "--out-tum"
+
+
+COMMANDS = {"calibrate imu": ImuCalibration, "calibrate imu-pair": PairCalibration, "smooth ship": ShipSmoothing,
+            "smooth tracker": TrackerSmoothing, "track": TrackerOnline}
 
 
 @pytest.fixture(scope="module", params=sorted(COMMANDS))
@@ -191,7 +225,7 @@ def command(request, tmp_path_factory):
     folder = tmp_path_factory.mktemp("clean")
     rec = write_recording(cmd.recording, folder / "rec")
     out = folder / cmd.suffix
-    code, err = run([*cmd.argv, str(rec), "--out", str(out)])
+    code, err = run([*cmd.argv, str(rec), getattr(cmd, "out_option", "--out"), str(out)])
     assert code == 0, err  # the clean recording must be accepted
     cmd.clean(out)
     return cmd
@@ -202,7 +236,7 @@ def fuzz(command, mutation):
     try:
         rec = write_recording(mutate(command.recording, mutation), folder / "rec")
         out = folder / command.suffix
-        code, err = run([*command.argv, str(rec), "--out", str(out)])
+        code, err = run([*command.argv, str(rec), getattr(command, "out_option", "--out"), str(out)])
         check_outcome(code, err, out, command.good_enough, mutation)
     finally:
         shutil.rmtree(folder, ignore_errors=True)

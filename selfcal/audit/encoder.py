@@ -35,6 +35,9 @@ from selfcal.audit.terms import Coordinate
 from selfcal.core.solve import joint_covariance
 from selfcal.graphs.encoder import calibration as ge
 
+MAX_ROWS = 60_000  # diode samples the audit fits: above it, every k-th position (each fit and score test is
+# linear in the rows; the positions left still cover the disk)
+
 MEANINGS = {
     "prnu": "per-diode gain non-uniformity of the array (photo-response non-uniformity)",
     "temperature_scale": "image scale p changes with temperature (thermal expansion of the optics / housing)",
@@ -46,15 +49,17 @@ class EncoderAudit:
     name = "encoder"
     folds = 2
     base_model = "ml"
+    # tens of thousands of diode samples: score tests from the normal equations, not the dense Jacobian (the
+    # gauge edge is a constant and every edge has a prior, so the base graph is full rank)
+    information_form = True
 
-    def __init__(self, problem: ge.Problem, start: dict | None = None, max_rows: int = 60_000):
+    def __init__(self, problem: ge.Problem, start: dict | None = None, max_rows: int | None = None):
         self.problem = problem
         self.start = start or {}
         self.base_effects = ()
         used = problem.used_positions()
         n = problem.arrays[0].n
-        step = max(1, math.ceil(used.size * n * len(problem.arrays) / max_rows))
-        # the score test forms the dense Jacobian: keep its rows bounded (every k-th position)
+        step = max(1, math.ceil(used.size * n * len(problem.arrays) / (max_rows or MAX_ROWS)))
         self.positions = used[::step]
         base = self._solve(self._frames(None), ge.EncoderModel(), None)
         self.base_values = base[0]
@@ -186,8 +191,10 @@ class EncoderAudit:
             for key, dim in keys:
                 values.insert(key, np.zeros(dim))
             groups.append([(key, np.arange(dim)) for key, dim in keys])
-        graph, _ = ge.build_graph(self.problem, model, values, fit.context["edges"], fit.context["frames"],
-                                  term_columns=self._term_columns(effects))
+        graph, layout = ge.build_graph(self.problem, model, values, fit.context["edges"], fit.context["frames"],
+                                       term_columns=self._term_columns(effects))
+        # an edge at the end of an image may come into view at the solution: a variable at its current angle
+        ge.insert_edges(values, layout.edge_vars, fit.context["edges"])
         return graph, values, groups
 
     def _key(self, candidate):

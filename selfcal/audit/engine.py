@@ -39,12 +39,12 @@ from typing import Protocol
 
 import gtsam
 import numpy as np
-from scipy import stats
+from scipy import linalg, stats
 
 from selfcal.audit import terms as library
 from selfcal.audit.terms import Coordinate, Term
 from selfcal.core.progress import quiet
-from selfcal.core.solve import DegenerateDataError, dense_jacobian
+from selfcal.core.solve import DegenerateDataError, dense_jacobian, normal_equations
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +180,8 @@ class AuditSystem(Protocol):
     #       (the candidates' ``term`` then reaches fit / extend / heldout / estimate)
     #   plausible(candidate, estimate) -> str | None: why an estimate is physically implausible
     #   catalog_term(candidate) -> (driver, form) | None: the library term a catalog effect is identical to
+    #   information_form = True: score tests from the normal equations (:func:`scorers`), for a base graph that is
+    #       full rank and too large for the dense Jacobian
 
 
 def extend_one(system, fit: Fit, candidate: Candidate):
@@ -245,6 +247,105 @@ def score_tests(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         f_stat = (drop / n_new) / max((rss_old - drop) / dof_den, 1e-300)
         out.append((float(max(f_stat, 0.0)), n_new, int(dof_den)))
     return out
+
+
+# --- the same tests from the normal equations (large graphs) ------------------------------------------------------
+
+SINGULAR = 1e-13  # an eigenvalue of the column-equilibrated information below this fraction of the largest is a
+# direction the data leave free (as core.solve.dense_marginals): the normal equations resolve no finer
+NEW_DIRECTION = 1e-5  # new columns' direction off the base, relative to their own length, below which it is one
+# the base already has (the normal equations' rounding, eps x condition, sits near 1e-6 in these units; the dense
+# test's rank tolerance is finer, ~1e-11: on the encoder's cases both give the same dof, F within 1e-11)
+
+
+def information_score_test(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                           new_columns: list[tuple[int, np.ndarray]]) -> tuple[float, int, int]:
+    """:func:`score_test` from the normal equations: the same statistic without the dense Jacobian.
+
+    With ``T`` the new columns and ``H`` the information ``A^T A``, projecting ``T`` off the base columns gives
+    the Schur complement ``S = T'^T T'`` and ``t = T'^T r`` (``r`` the base residual); the RSS drop is
+    ``t^T S^+ t`` and the rank gain the rank of ``S``.  For adapters whose base graph is full rank (gauge fixed,
+    priors on weakly seen variables): ``information_form = True``.
+    """
+    H, g, bb, rows, offsets = normal_equations(graph, values)
+    new = np.concatenate([offsets[k] + np.asarray(idx, dtype=int) for k, idx in new_columns])
+    S, t, rss_old, rank_base = _schur_complement(H, g, bb, new)
+    scale = np.sqrt(np.diag(H)[new])  # each new column's own length: S in these units compares with 1
+    scale[scale == 0] = 1.0
+    lam, V = np.linalg.eigh(S / np.outer(scale, scale))
+    keep = lam > NEW_DIRECTION**2
+    drop = float(np.sum((V[:, keep].T @ (t / scale)) ** 2 / lam[keep]))
+    n_new = int(max(np.sum(keep), 1))
+    dof_den = max(rows - rank_base - int(np.sum(keep)), 1)
+    f_stat = (drop / n_new) / max((rss_old - drop) / dof_den, 1e-300)
+    return float(max(f_stat, 0.0)), n_new, int(dof_den)
+
+
+def information_score_tests(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                            groups: list[list[tuple[int, np.ndarray]]]) -> list[tuple[float, int, int]]:
+    """:func:`score_tests` from the normal equations (see :func:`information_score_test`).
+
+    The singular values of a candidate's projected columns ``T'`` are the square roots of the eigenvalues of
+    its block of ``S``; its RSS drop is ``sum_i (v_i^T t)^2 / lambda_i`` over the directions longer than
+    ``COLLINEAR`` times its own columns' norm, as the dense test keeps them.
+    """
+    H, g, bb, rows, offsets = normal_equations(graph, values)
+    columns = [np.concatenate([offsets[k] + np.asarray(idx, dtype=int) for k, idx in group]) for group in groups]
+    candidate_columns = np.unique(np.concatenate(columns)) if columns else np.array([], dtype=int)
+    S, t, rss_old, rank_base = _schur_complement(H, g, bb, candidate_columns)
+    position = {c: i for i, c in enumerate(candidate_columns)}
+    out = []
+    for col in columns:
+        idx = np.array([position[c] for c in col])
+        own_squared = max(float(np.linalg.eigvalsh(H[np.ix_(col, col)])[-1]), 1e-300)
+        lam, V = np.linalg.eigh(S[np.ix_(idx, idx)])
+        keep = lam > COLLINEAR**2 * own_squared
+        gain = int(np.sum(keep))
+        drop = float(np.sum((V[:, keep].T @ t[idx]) ** 2 / lam[keep]))
+        n_new = max(gain, 1)
+        dof_den = max(rows - rank_base - gain, 1)
+        f_stat = (drop / n_new) / max((rss_old - drop) / dof_den, 1e-300)
+        out.append((float(max(f_stat, 0.0)), n_new, int(dof_den)))
+    return out
+
+
+def _schur_complement(H: np.ndarray, g: np.ndarray, bb: float, new: np.ndarray):
+    """``(S, t, RSS of the base, base rank)`` for the columns ``new`` against the others, in the columns' units.
+
+    Equilibrated (unit diagonal) before the Cholesky factorisation of the base block; a base column no row
+    touches carries nothing and is left out (the dense test's rank does the same).  A base the data and priors
+    do not determine is refused: this form needs the base full rank.
+    """
+    base = np.setdiff1d(np.flatnonzero(np.diag(H) > 0), new)
+    scale = np.sqrt(np.diag(H))
+    scale[scale == 0] = 1.0
+    Hs, gs = H / np.outer(scale, scale), g / scale
+    H_bb, H_bn = Hs[np.ix_(base, base)], Hs[np.ix_(base, new)]
+    X = np.zeros((0, new.size + 1))
+    if base.size:
+        try:
+            factor = linalg.cho_factor(H_bb)
+            # reciprocal condition number, LAPACK's estimate from the factor (O(n^2), not an eigen-decomposition)
+            rcond, _ = linalg.lapack.dpocon(factor[0], float(np.max(np.sum(np.abs(H_bb), axis=0))),
+                                            uplo="L" if factor[1] else "U")
+        except linalg.LinAlgError:
+            rcond = 0.0
+        if rcond <= SINGULAR:
+            raise DegenerateDataError("the base model's graph is singular: the score tests need its information "
+                                      "full rank")
+        X = linalg.cho_solve(factor, np.column_stack([H_bn, gs[base]]))
+    S = (Hs[np.ix_(new, new)] - H_bn.T @ X[:, :-1]) * np.outer(scale[new], scale[new])
+    t = (gs[new] - H_bn.T @ X[:, -1]) * scale[new]
+    rss_old = bb - float(gs[base] @ X[:, -1])
+    return 0.5 * (S + S.T), t, rss_old, int(base.size)
+
+
+def scorers(system):
+    """(one candidate's test, many candidates' tests) for ``system``: from the normal equations where its adapter
+    says ``information_form = True`` (a full-rank base too large for the dense Jacobian), else dense."""
+    if getattr(system, "information_form", False):
+        return information_score_test, information_score_tests
+    return score_test, score_tests
 
 
 def _lstsq_rss(A: np.ndarray, b: np.ndarray) -> float:
@@ -339,12 +440,14 @@ class _Search:
     """The search's state (current model, its held-out residuals, findings, rejections) and its steps."""
 
     def __init__(self, system: AuditSystem, alpha: float, progress):
-        self.system, self.alpha, self.progress = system, alpha, progress
+        self.system, self.alpha = system, alpha
+        self.progress = progress or (lambda message: None)
         self.library_alpha = min(alpha, LIBRARY_ALPHA)
         self.effects = tuple(system.base_effects)
-        progress("fit the base model")
+        self.progress(f"fit the base model ({system.base_model})")
         self.fit = self.base_fit = system.fit(self.effects)
         self.fits = [self.fit]
+        self.progress(f"cross-validating the base model ({system.folds} folds)")
         self.held = _heldout(system, self.effects)
         self.findings: list[dict] = []
         self.history: list[dict] = []
@@ -451,10 +554,11 @@ class _Search:
         """Score test of one candidate against ``fit``, corrected for residuals correlated in time (a library
         term's with the collinearity rule of :func:`score_tests`)."""
         graph, values, columns = extend_one(self.system, fit, candidate)
+        one, many = scorers(self.system)
         if candidate.term is None:
-            f_stat, dof, dof_den = score_test(graph, values, columns)
+            f_stat, dof, dof_den = one(graph, values, columns)
         else:
-            f_stat, dof, dof_den = score_tests(graph, values, [columns])[0]
+            f_stat, dof, dof_den = many(graph, values, [columns])[0]
         inflation = self.inflation(fit)
         f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
         return Trial(candidate, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof)
@@ -468,7 +572,7 @@ class _Search:
         graph, values, groups = extend_all(fit, candidates)
         inflation = self.inflation(fit)
         trials = []
-        for cand, (f_stat, dof, dof_den) in zip(candidates, score_tests(graph, values, groups)):
+        for cand, (f_stat, dof, dof_den) in zip(candidates, scorers(self.system)[1](graph, values, groups)):
             f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
             trials.append(Trial(cand, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof))
         return trials
@@ -483,6 +587,7 @@ class _Search:
         """(fit, held-out, delta BIC) of the model with the candidate, or the :class:`Rejection` saying why not."""
         cand = trial.candidate
         new_effects = self.effects + (cand,)
+        self.progress(f"refitting and cross-validating with {cand.key}")
         new_fit = self.system.fit(new_effects)
         new_held = _heldout(self.system, new_effects)
         delta_bic = new_fit.bic() - self.fit.bic()
@@ -686,6 +791,7 @@ class _Search:
     # --- the result ----------------------------------------------------------------------------------------
 
     def result(self) -> AuditResult:
+        self.progress("testing what remains in the final model's residuals")
         strongest = self.strongest_terms() if self.offers_terms else {}
         remaining = remaining_structure(self.fit, self.alpha, self.inflation(self.fit), strongest)
         return AuditResult(self.system.name, self.system.base_model, self.findings, self.effects, self.base_fit,
@@ -698,7 +804,7 @@ def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, prev
     for trial in trials:
         if trial.candidate == accepted or trial.p_value >= threshold:
             continue
-        f_stat, dof, dof_den = score_test(*extend_one(system, accepted_fit, trial.candidate))
+        f_stat, dof, dof_den = scorers(system)[0](*extend_one(system, accepted_fit, trial.candidate))
         if stats.f.sf(f_stat, dof, dof_den) < threshold:
             continue  # still significant on top of the accepted effect: a separate effect, not a rival
         alternative = system.fit(previous_fit.effects + (trial.candidate,))

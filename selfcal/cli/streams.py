@@ -94,9 +94,11 @@ def track_arguments(p) -> None:
 
 
 def track(args) -> None:
-    from selfcal.pipelines.track import make_estimator, run_track, sensor_meta
+    from selfcal.pipelines.track import check_replay, make_estimator, run_track, sensor_meta
     if not args.out_tum and not args.out_jsonl:
         raise UsageError("nothing to write: give --out-tum POSES.tum and/or --out-jsonl POSES.jsonl")
+    if args.replay:
+        check_replay(args.system, args.replay)
     meta_from = args.sensors_from or args.replay
     estimator = make_estimator(args.system, sensor_meta(meta_from) if meta_from else {})
     stream = open_stream(args, max_samples=args.max_samples)
@@ -105,6 +107,24 @@ def track(args) -> None:
                            append=args.append)
     finally:
         stream.close()
+    if result.outputs == 0 and not args.append:  # nothing estimated: no empty file that looks like a result
+        from pathlib import Path
+
+        from selfcal.pipelines.track import TrackError
+        for out in (args.out_tum, args.out_jsonl):
+            if out and Path(out).is_file() and Path(out).stat().st_size == 0:
+                Path(out).unlink()
+        raise TrackError(f"no pose from {result.samples} samples: the sensors never gave the estimator enough to "
+                         "start (too short, or a sensor missing)")
+    try:
+        getattr(estimator, "check", lambda: None)()  # can the run be vouched for, now that it is whole
+    except Exception:
+        if args.replay and not args.append:  # a recording's replay is refused whole, as its batch path would be
+            from pathlib import Path
+            for out in (args.out_tum, args.out_jsonl):
+                if out:
+                    Path(out).unlink(missing_ok=True)
+        raise
     print(result.summary())
     print_stream_stats(stream)
 

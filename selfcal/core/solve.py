@@ -6,6 +6,7 @@ import math
 
 import gtsam
 import numpy as np
+from scipy import sparse
 
 from selfcal.core.errors import SelfcalError
 from selfcal.core.progress import quiet
@@ -99,6 +100,30 @@ def dense_jacobian(graph, values) -> tuple[np.ndarray, np.ndarray, dict[int, int
     A, b = graph.linearize(values).jacobian(ordering)
     # own, contiguous copies: LAPACK on GTSAM's view is ~100x slower
     return np.array(A, order="C"), np.array(b).ravel(), offsets
+
+
+def normal_equations(graph, values) -> tuple[np.ndarray, np.ndarray, float, int, dict[int, int]]:
+    """``A^T A``, ``A^T b``, ``b^T b`` and the row count of the whitened linearised system, columns as
+    :func:`dense_jacobian`'s (``values``' keys in order, each key's first column in the dict).
+
+    Built from GTSAM's sparse Jacobian, so the cost follows the non-zeros, not rows x columns: the form for
+    graphs whose dense Jacobian does not fit in memory (tens of thousands of rows, thousands of columns).
+    """
+    offsets, column = {}, 0
+    tangent = values.zeroVectors()
+    for k in values.keys():
+        offsets[k] = column
+        column += tangent.at(k).size
+    linear = graph.linearize(values)
+    # GTSAM numbers the sparse Jacobian's columns by the graph's keys in ascending order, 1-based, b last
+    to_column = np.concatenate([offsets[k] + np.arange(tangent.at(k).size) for k in sorted(linear.keys())]
+                               + [np.array([column])])
+    i, j, entries = linear.sparseJacobian_()
+    rows = sum(graph.at(f).dim() for f in range(graph.size()))
+    Ab = sparse.csc_matrix((entries, (i.astype(np.int64) - 1, to_column[j.astype(np.int64) - 1])),
+                           shape=(rows, column + 1))
+    N = (Ab.T @ Ab).toarray()
+    return N[:-1, :-1], N[:-1, -1], float(N[-1, -1]), int(rows), offsets
 
 
 def dense_marginals(graph, values, keys, what: str) -> dict[int, np.ndarray]:

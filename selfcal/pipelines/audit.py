@@ -72,7 +72,7 @@ def audit_recording(recording: Recording, system: str, base: str | None = None, 
     base = base or entry.audit[0]
     if base not in entry.audit:
         raise SelfcalError(f"unknown base model {base!r} for system {system}: choose {' or '.join(entry.audit)}")
-    progress(f"read the {system} recording")
+    progress(f"read the {system} recording and solve its {base} model")
     audit_system = entry.load("pipelines").audit_system(recording, base, sensors)
     result = run_audit(audit_system, progress=progress)
     # optional hooks of an audit system: model-free diagnostics, a re-simulation of the recording's own

@@ -213,6 +213,11 @@ def audit_system(recording: Recording, base: str = "attitude", sensors: list[str
     return ShipAudit(ship_inputs(recording, names[0]), sensor=names[0])
 
 
+def check_recording(recording: Recording, imu_name: str = "imu0") -> None:
+    """What :func:`smooth_ship` refuses before it starts (``selfcal track --replay`` applies it too)."""
+    recording.imu(imu_name)
+
+
 def online_estimator(meta: dict[str, dict]):
     """``selfcal track --system ship``: the fixed-lag attitude smoother fed sample by sample."""
     return OnlineShipTracker(meta)

@@ -111,6 +111,18 @@ def make_estimator(system: str, meta: dict[str, dict] | None = None):
     return registry.system(system).load("pipelines").online_estimator(meta or {})
 
 
+def check_replay(system: str, recording_path) -> None:
+    """Vet a recording before it is replayed online: the system's own checks of what it cannot vouch for
+    (``check_recording`` in its pipeline module: units, dead sensors, disagreeing sensors), the same as its batch
+    path applies; a live stream cannot be vetted ahead, a recording can."""
+    from selfcal.io.recording import read_recording
+    if system not in registry.names("online"):
+        return  # make_estimator names the systems that have one
+    check = getattr(registry.system(system).load("pipelines"), "check_recording", None)
+    if check is not None:
+        check(read_recording(recording_path))
+
+
 def sensor_meta(recording_path) -> dict[str, dict]:
     """``{sensor: sensor.yaml content}`` of a recording folder (only the YAML files are read, not the data)."""
     import yaml

@@ -107,6 +107,11 @@ class OnlineTracker:
             self.latency_s.append(time.perf_counter() - start)
         return out
 
+    def check(self) -> None:
+        """At the end of a run: refuse (RecordingError) a run whose sensors disagreed with the model throughout
+        (:func:`check_agreement`)."""
+        check_agreement("the stream", self.estimator.counts)
+
     def _restart(self, t_ns: int) -> None:
         """After an IMU gap the state cannot be propagated across: start over (a new estimator, initialised again
         from the next samples), and say so once."""
@@ -136,6 +141,15 @@ def recording_events(recording: Recording):
     check_sensors(recording)
     for t, _, name, values in heapq.merge(*streams, key=lambda e: (e[0], e[1])):
         yield name, t, values
+
+
+def check_recording(recording: Recording) -> None:
+    """What :func:`smooth_tracker` refuses before it starts (``selfcal track --replay`` applies it too)."""
+    for name in ("imu0", "tracker0", "incl0"):
+        if name not in recording.sensors:
+            raise RecordingError(f"{recording.path}: the tracker system needs sensor {name!r} "
+                                 f"(has: {', '.join(sorted(recording.sensors))})")
+    check_sensors(recording)
 
 
 def check_sensors(recording: Recording) -> None:
@@ -230,21 +244,21 @@ def smooth_tracker(recording: Recording, mode: str = "batch", gating: bool = Tru
         quats = np.array([o["quaternion"] for o in outputs])
         cov = np.array([o["covariance"] for o in outputs]) if outputs[0]["covariance"] is not None else None
     counts = dict(tracker.estimator.counts)
-    check_agreement(recording, counts)
+    check_agreement(recording.path, counts)
     return TrackerResult(t_ns, position, quats, cov, faults, decisions, mode, time.perf_counter() - start, counts)
 
 
 MAX_REJECTED_FRACTION = 0.25
 
 
-def check_agreement(recording: Recording, counts: dict) -> None:
+def check_agreement(where, counts: dict) -> None:
     """Refuse a run whose sensors disagree with the model throughout.  The chi-square gate rejects a good
     measurement with probability ``gate_alpha`` (1e-4) and the default fault schedule of the simulator rejects
     under 5 %; a quarter of all measurements rejected is no fault to gate out but a model that does not hold (a
     gyro in deg/s on a near-still TBM, where no sanity check can see it, rejects 45 %)."""
     judged = counts.get("accepted", 0) + counts.get("rejected", 0)
     if judged and counts.get("rejected", 0) > MAX_REJECTED_FRACTION * judged:
-        raise RecordingError(f"{recording.path}: {counts['rejected']} of {judged} measurements failed the chi-square "
+        raise RecordingError(f"{where}: {counts['rejected']} of {judged} measurements failed the chi-square "
                              "gate: the IMU and the other sensors disagree throughout, not a fault to gate out; check "
                              "units (gyro in rad/s?) and the sensor.yaml noise")
 

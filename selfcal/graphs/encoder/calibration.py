@@ -452,8 +452,9 @@ def _estimate(problem, model, graph, layout, values, edge_alpha, covariance: boo
     # the graph was built with the sensor.yaml sigmas: rebuild with the estimated ones for the covariance
     for k, arr in enumerate(problem.arrays):
         arr.noise_sigma = levels[k][0]
-    graph, layout = build_graph(problem, model, values, edge_alpha)
-    keys_sigma = [B(int(J)) for J in problem.used_positions()]
+    graph, layout = build_graph(problem, model, values, edge_alpha, layout.frames)
+    positions = sorted({J for _, J in layout.frames})  # the solved frames' (all used ones, or a subset)
+    keys_sigma = [B(int(J)) for J in positions]
     if not covariance:
         keys_sigma += [EDGE(e) for e in sorted(layout.edge_vars)]
     for k in range(len(problem.arrays)):
@@ -472,7 +473,7 @@ def _estimate(problem, model, graph, layout, values, edge_alpha, covariance: boo
     N = problem.n_positions
     beta = np.full(N, np.nan)
     beta_sigma = np.full(N, np.nan)
-    for J in problem.used_positions():
+    for J in positions:
         beta[J] = values.atVector(B(int(J)))[0]
         beta_sigma[J] = sig(B(int(J)))[0]
     edges_sigma = np.zeros(code.n_edges)
@@ -682,7 +683,7 @@ def eccentricity_observability(problem: Problem, est: Estimate) -> Observability
     values = gtsam.Values(est.values)
     if not values.exists(ECCENTRICITY):
         values.insert(ECCENTRICITY, np.zeros(2))
-    graph, _ = build_graph(problem, model, values, est.edges_rad)
+    graph, _ = build_graph(problem, model, values, est.edges_rad, est.factor_frames)
     ordering = gtsam.Ordering()
     keys = [k for k in values.keys() if k != ECCENTRICITY] + [ECCENTRICITY]
     for k in keys:
