@@ -97,7 +97,7 @@ def track(args) -> None:
     from selfcal.pipelines.track import check_replay, make_estimator, run_track, sensor_meta
     if not args.out_tum and not args.out_jsonl:
         raise UsageError("nothing to write: give --out-tum POSES.tum and/or --out-jsonl POSES.jsonl")
-    if args.replay:
+    if args.replay and not (args.serial or args.can or args.can_log):  # the recording is the whole input
         check_replay(args.system, args.replay)
     meta_from = args.sensors_from or args.replay
     estimator = make_estimator(args.system, sensor_meta(meta_from) if meta_from else {})
