@@ -32,10 +32,12 @@ RECORDING = "data/xsens_mti_multiposition"
 def run_job(pythonpath: Path, out: Path) -> tuple[float, dict, list[str]]:
     """(wall s, audit JSON, progress lines) of one main-job run with the package found at ``pythonpath``."""
     code = ("import sys; from selfcal.cli.main import main; "
-            f"sys.exit(main(['-v', 'audit', {RECORDING!r}, '--system', 'imu', '--json', {str(out / 'a.json')!r}, "
-            f"'--report', {str(out / 'a.html')!r}]))")
+            f"sys.exit(main(['-v', 'audit', {str(ROOT / RECORDING)!r}, '--system', 'imu', '--json', "
+            f"{str(out / 'a.json')!r}, '--report', {str(out / 'a.html')!r}]))")
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env={"PYTHONPATH": str(pythonpath), "PATH": ""},
+    # `python -c` puts its working folder first on sys.path: run inside the tree being timed, or every run would
+    # import this tree whatever PYTHONPATH says (the figures before 2026-11-26 compared this tree with itself)
+    done = subprocess.run([sys.executable, "-c", code], cwd=pythonpath, env={"PYTHONPATH": str(pythonpath), "PATH": ""},
                           capture_output=True, text=True)
     wall = time.perf_counter() - start
     if done.returncode != 0:
