@@ -65,16 +65,56 @@ def test_replay_through_estimator_writes_every_pose_and_counts(tmp_path):
 
 
 def test_outputs_are_refused_if_present_and_appended_with_append(tmp_path):
+    """Issue 16: ``--append`` after a replay re-emitted every pose.  It resumes after the last whole pose in the
+    file: a run killed mid-line (its partial line ended, not parsed) and replayed again adds only the poses after
+    it, and says how many it skipped."""
     rec = small_recording()
     run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum")
-    n = len((tmp_path / "p.tum").read_text().splitlines())
+    lines = (tmp_path / "p.tum").read_text().splitlines()
+    n = len(lines)
     with pytest.raises(FileExistsError):
         run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum")
-    with open(tmp_path / "p.tum", "a") as f:
-        f.write("1.0 2.0")  # a killed run's partial line
-    run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum", append=True)
-    lines = (tmp_path / "p.tum").read_text().splitlines()
-    assert len(lines) == 2 * n + 1 and lines[n] == "1.0 2.0" and len(lines[n + 1].split()) == 8
+    kept = 20  # a run killed after 20 poses, in the middle of the 21st line
+    (tmp_path / "p.tum").write_text("".join(line + "\n" for line in lines[:kept]) + lines[kept][:11])
+    result = run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum", append=True)
+    again = (tmp_path / "p.tum").read_text().splitlines()
+    assert again[:kept] == lines[:kept] and again[kept] == lines[kept][:11]  # the partial line, ended
+    assert again[kept + 1:] == lines[kept:]  # every later pose once, none before
+    assert result.outputs == n and result.skipped == {str(tmp_path / "p.tum"): kept}
+    result = run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum", append=True)  # nothing new
+    assert (tmp_path / "p.tum").read_text().splitlines() == again and result.skipped == {str(tmp_path / "p.tum"): n}
+
+
+def test_append_resumes_each_output_after_its_own_last_pose(tmp_path):
+    """A kill between the TUM and the JSON line of one pose leaves the JSON file a pose behind: each file resumes
+    after its own last pose, so neither loses nor repeats one.  The CLI says what it skipped in one line."""
+    rec = small_recording()
+    write_recording(rec, tmp_path / "rec")
+    run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum", out_jsonl=tmp_path / "p.jsonl")
+    tum, jsonl = ((tmp_path / f"p.{ext}").read_text().splitlines() for ext in ("tum", "jsonl"))
+    (tmp_path / "p.tum").write_text("".join(line + "\n" for line in tum[:10]))
+    (tmp_path / "p.jsonl").write_text("".join(line + "\n" for line in jsonl[:9]))
+    result = run_track(replay(rec), EchoEstimator(), out_tum=tmp_path / "p.tum", out_jsonl=tmp_path / "p.jsonl",
+                       append=True)
+    assert (tmp_path / "p.tum").read_text().splitlines() == tum
+    assert (tmp_path / "p.jsonl").read_text().splitlines() == jsonl
+    assert result.skipped == {str(tmp_path / "p.tum"): 10, str(tmp_path / "p.jsonl"): 9}
+
+
+def test_cli_track_append_after_a_replay_writes_no_duplicate(tmp_path, monkeypatch, capsys):
+    write_recording(small_recording(), tmp_path / "rec")
+    monkeypatch.setattr(registry, "SYSTEMS", registry.SYSTEMS + (registry.System("echo", "test", online=True),))
+    monkeypatch.setitem(sys.modules, "selfcal.pipelines.echo",
+                        types.SimpleNamespace(online_estimator=lambda meta: EchoEstimator()))
+    monkeypatch.setitem(sys.modules, "selfcal.cli.echo", types.SimpleNamespace(VERBS=()))
+    args = ["track", "--replay", str(tmp_path / "rec"), "--system", "echo", "--out-tum", str(tmp_path / "p.tum")]
+    assert main(args) == 0
+    first = (tmp_path / "p.tum").read_text()
+    capsys.readouterr()
+    assert main(args + ["--append"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (tmp_path / "p.tum").read_text() == first
+    assert len(err) == 1 and "50 poses already in" in err[0] and "skipped" in err[0]
 
 
 def test_lines_are_flushed_as_they_come(tmp_path):

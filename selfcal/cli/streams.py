@@ -2,6 +2,7 @@
 (docs/streams.md)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from selfcal import registry
@@ -88,7 +89,8 @@ def track_arguments(p) -> None:
     outputs = p.add_argument_group("outputs")
     outputs.add_argument("--out-tum", help="poses, TUM format (t x y z qx qy qz qw), appended line by line")
     outputs.add_argument("--out-jsonl", help="one JSON object per pose: covariance and fault flags included")
-    outputs.add_argument("--append", action="store_true", help="continue existing output files")
+    outputs.add_argument("--append", action="store_true", help="continue existing output files after the last "
+                                                                    "pose already in them")
     p.add_argument("--sensors-from", metavar="REC", help="recording whose sensor.yaml files configure the "
                                                          "estimator (default: the --replay recording)")
 
@@ -125,6 +127,9 @@ def track(args) -> None:
                 if out:
                     Path(out).unlink(missing_ok=True)
         raise
+    if result.skipped:  # --append resumed after the poses already written
+        print("--append: " + ", ".join(f"{n} poses already in {path} (at or before its last pose) skipped"
+                                       for path, n in result.skipped.items()), file=sys.stderr)
     print(result.summary())
     print_stream_stats(stream)
 

@@ -74,6 +74,8 @@ class TrackResult:
     first_t_ns: int | None = None
     last_t_ns: int | None = None
     interrupted: bool = False  # ended by Ctrl-C
+    # --append: poses already in an output file (stamped at or before its last pose), not written again: file -> count
+    skipped: dict[str, int] = field(default_factory=dict)
     per_sensor: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -161,13 +163,66 @@ def _plain(obj):
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def tum_t_ns(field: str) -> int:
+    """A TUM line's time field (s, as :func:`tum_line` writes it: up to nine decimals) back to ns, exactly."""
+    sign, text = (-1, field[1:]) if field.startswith("-") else (1, field)
+    sec, _, frac = text.partition(".")
+    if not sec.isdigit() or not (frac == "" or frac.isdigit()):
+        raise ValueError(f"not a time in s: {field!r}")
+    return sign * (int(sec) * 10**9 + int(frac[:9].ljust(9, "0")))
+
+
+def complete_lines_backwards(path: Path, block_bytes: int = 65536):
+    """The lines of ``path`` that end in a newline, last first (a killed run's partial line after the last
+    newline is not one), read from the end in blocks."""
+    with open(path, "rb") as f:
+        pos = f.seek(0, 2)
+        buf, trimmed = b"", False
+        while pos > 0:
+            start = max(0, pos - block_bytes)
+            f.seek(start)
+            buf = f.read(pos - start) + buf
+            pos = start
+            if not trimmed:  # drop what follows the last newline, once
+                cut = buf.rfind(b"\n")
+                if cut < 0:
+                    continue
+                buf, trimmed = buf[:cut + 1], True
+            # the line up to the first newline may have begun before this block: kept for the next one
+            first = buf.find(b"\n") + 1 if pos > 0 else 0
+            for line in reversed(buf[first:].splitlines()):
+                yield line.decode("utf-8", errors="replace")
+            buf = buf[:first]
+
+
+def pose_t_ns(line: str) -> int | None:
+    """The stamp (ns) of one output line: a TUM pose's first field (8 fields), a JSON line's ``t_ns``; None for
+    anything else (a comment, a killed run's partial line ended by the next run)."""
+    try:
+        if line.startswith("{"):
+            return int(json.loads(line)["t_ns"])
+        fields = line.split()
+        return tum_t_ns(fields[0]) if len(fields) == 8 else None
+    except (ValueError, KeyError, TypeError):
+        return None
+
+
+def last_pose_t_ns(path: Path) -> int | None:
+    """The stamp (ns) of the last whole pose in an output file, None when it holds none."""
+    return next((t for t in map(pose_t_ns, complete_lines_backwards(path)) if t is not None), None)
+
+
 class _LineSink:
-    """A text file that lines are appended to and flushed one by one."""
+    """A text file that lines are appended to and flushed one by one.  Continued (``append``), it resumes after
+    the last pose already in it: outputs stamped at or before that are skipped and counted (a replay run again
+    would write every pose twice)."""
 
     def __init__(self, path, append: bool):
         self.path = Path(path)
         if self.path.exists() and self.path.stat().st_size > 0 and not append:
             raise FileExistsError(f"{self.path}: already exists (pass --append to continue it)")
+        self.resume_after_ns = last_pose_t_ns(self.path) if self.path.exists() else None
+        self.skipped = 0
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.file = open(self.path, "a", encoding="utf-8", newline="\n")
         if self.file.tell() > 0:  # a killed run may have left a partial line: end it so ours start clean
@@ -176,7 +231,10 @@ class _LineSink:
                 if f.read(1) != b"\n":
                     self.file.write("\n")
 
-    def write(self, line: str) -> None:
+    def write(self, line: str, t_ns: int) -> None:
+        if self.resume_after_ns is not None and t_ns <= self.resume_after_ns:
+            self.skipped += 1
+            return
         self.file.write(line + "\n")
         self.file.flush()
 
@@ -198,7 +256,8 @@ def run_track(samples: Iterable[tuple[str, int, dict]], estimator, out_tum=None,
         Poses (``t x y z qx qy qz qw``) and full outputs (one JSON object per line: the estimator's dict,
         covariance and fault flags included).
     append : bool
-        Continue existing output files instead of refusing them.
+        Continue existing output files instead of refusing them, after the last pose already in each (outputs
+        stamped at or before it are skipped, counted in ``TrackResult.skipped``).
 
     Returns
     -------
@@ -225,6 +284,8 @@ def run_track(samples: Iterable[tuple[str, int, dict]], estimator, out_tum=None,
         for sink in sinks:
             if sink is not None:
                 sink.close()
+                if sink.resume_after_ns is not None:
+                    result.skipped[str(sink.path)] = sink.skipped
     log.info("%s", result.summary())
     return result
 
@@ -245,8 +306,9 @@ def _track_samples(samples, estimator, result: TrackResult, tum, jsonl, clock) -
             except (KeyError, TypeError, ValueError) as err:
                 raise TrackError(f"estimator output without a usable pose ({err!r}): keys {sorted(out)}") \
                     from None
+            t_ns = int(out["t_ns"])
             if tum is not None:
-                tum.write(line)
+                tum.write(line, t_ns)
             if jsonl is not None:
-                jsonl.write(json.dumps(out, default=_plain, separators=(",", ":")))
+                jsonl.write(json.dumps(out, default=_plain, separators=(",", ":")), t_ns)
             result.outputs += 1

@@ -71,12 +71,12 @@ def readmission(detector: EigenDetector, lam_max: float | None, held_s: float, m
     """The recovery test of a held-out sensor on the last test of its monitored (not added) residuals:
     ``'recovered'`` when a window passes both sides (:meth:`EigenDetector.certifies_recovery`),
     ``'readmitted_after_holdout'`` after ``max_holdout_s`` if its residuals still have their noise (``lambda_min``
-    above the lower threshold: not stuck), None while it stays held out."""
+    above the lower threshold, or a sensor that never showed it: not stuck), None while it stays held out."""
     if lam_max is None:
         return None
     if detector.certifies_recovery(lam_max):
         return "recovered"
-    if held_s > max_holdout_s and detector.last_min >= detector.lower:
+    if held_s > max_holdout_s and detector.keeps_its_noise():
         return "readmitted_after_holdout"
     return None
 

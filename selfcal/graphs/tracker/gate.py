@@ -120,6 +120,7 @@ class Gate:
         self.threshold = {d: float(chdtri(d, gating.gate_alpha)) for d in (2, 3)}
         self.consecutive_rejects: dict[str, int] = {}
         self.counts = {"accepted": 0, "rejected": 0, "held_out": 0}
+        self._quiet_reported: dict[str, bool] = {}  # sensors said once to be quieter than their noise model
 
     def decide(self, tag: str, t_ns: int, stat: float, nu: np.ndarray, k: int, inflated: bool = False,
                excused: bool = False, monitor: tuple | None = None) -> bool:
@@ -194,6 +195,17 @@ class Gate:
         """Feed the soft-fault detector; a due test that fails holds the sensor out, unless one already is
         (single-fault assumption)."""
         lam_max = detector.push(nu, inflated)
+        if lam_max is not None and detector.quieter_than_model() and not self._quiet_reported.get(tag):
+            # said once: the data, not the sensor, disagree with the model (its stuck-output side stays off)
+            self._quiet_reported[tag] = True
+            spread = math.sqrt(detector.last_min / detector.n)
+            self.health.decisions.append({"t_ns": int(t_ns), "sensor": tag, "test": "eigen", "statistic":
+                                          detector.last_min, "threshold": detector.lower, "lambda_max": lam_max,
+                                          "decision": "quieter_than_model"})
+            log.warning("%s: residuals down to %.2g of the spread its sensor.yaml noise predicts, since the start "
+                        "(lambda_min %.3g < %.3g): noise-free data or the stated sigma too large; not a fault, "
+                        "but its stuck-output test is off until it shows that noise", tag, spread,
+                        detector.last_min, detector.lower)
         if lam_max is None or detector.healthy(lam_max) or self.health.any_fault():
             return
         self.health.declare_fault(tag, t_ns, k, {"test": "eigen", "statistic": lam_max,
