@@ -166,7 +166,7 @@ class TrackerSmoothing:
     def __init__(self):
         from selfcal.sim.tracker import TrackerScenario
         self.scenario = TrackerScenario(duration_s=30.0, seed=5)
-        self.recording = self.scenario.measurements()
+        self.recording = self.scenario.measurements(seed=105)  # with noise: exact data are no physical run
         self.t0_ns = int(self.scenario.t0_ns)
 
     def error_m(self, out: Path) -> float:
