@@ -29,7 +29,7 @@ from scipy.signal import savgol_filter
 from selfcal.core import inertial
 from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
 from selfcal.core.progress import quiet
-from selfcal.core.solve import lag_stamp_s, optimize
+from selfcal.core.solve import lag_stamp_s, marginal_covariances, optimize
 from selfcal.models import ship
 
 R_KEY, B_KEY, V_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B, gtsam.symbol_shorthand.V
@@ -96,6 +96,7 @@ class ShipEstimate:
     speed_scale: float | None = None
     gyro_scale: np.ndarray | None = None
     speed_m_s: np.ndarray | None = None  # (K,) the unknown speed at the keyframes, when in the graph
+    gyro_bias_covariance: np.ndarray | None = None  # (3, 3) marginal of the final bias segment, (rad/s)^2
 
 
 def known_acceleration(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
@@ -380,8 +381,11 @@ class ShipSmoother:
         ypr = np.array([result.atRot3(R_KEY(k)).ypr() for k in range(len(self.keyframes))])
         bias = np.array([result.atVector(builder.bias_key(f.t_s)) for f in self.keyframes])
         speed = [result.atVector(builder.speed_key(f.t_s))[0] for f in self.keyframes if builder.unknown_speed(f)]
+        progress("gyro bias covariance")
+        final_bias = builder.bias_key(self.keyframes[-1].t_s)
+        covariance = marginal_covariances(graph, result, [final_bias], "the gyro bias")[final_bias]
         return ShipEstimate(self._times(), ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, time.perf_counter() - start,
-                            *_constants(result), np.array(speed) if speed else None)
+                            *_constants(result), np.array(speed) if speed else None, covariance)
 
     def online(self, lag_s: float = 60.0, progress=quiet) -> ShipEstimate:
         """The filtered attitudes (each as first solved), replayed through :class:`OnlineShip`."""
@@ -397,9 +401,10 @@ class ShipSmoother:
             if online.graph.unknown_speed(frame):
                 speeds.append(online.estimate.atVector(online.graph.last_speed_key)[0])
         rpy = np.array(attitudes)
+        covariance = online.smoother.marginalCovariance(online.graph.bias_key(self.keyframes[-1].t_s))
         return ShipEstimate(self._times(), rpy[:, 0], rpy[:, 1], rpy[:, 2], np.array(biases),
                             time.perf_counter() - start, *_constants(online.estimate),
-                            np.array(speeds) if speeds else None)
+                            np.array(speeds) if speeds else None, covariance)
 
     def _times(self) -> np.ndarray:
         return np.array([f.t_s for f in self.keyframes])

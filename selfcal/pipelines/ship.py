@@ -69,6 +69,49 @@ def smooth_ship(recording: Recording, online: bool = False, remove_known_acceler
     return smoother.online(progress=progress) if online else smoother.batch(progress=progress)
 
 
+DEG_H = np.pi / 180.0 / 3600.0  # 1 deg/h in rad/s
+BIAS_SIGMA_BOUND_DEG_H = 5.0  # a bias component known worse than this (1 sigma) is not reported as a number: at 5
+# deg/h a ship gyro's 10 deg/h bias is not told from zero at 2 sigma (docs/ship.md, "What the voyage determines")
+UNDETERMINED_REASON = {
+    "x": "the tilt's noise over this voyage: too short or too noisy to carry the roll-axis drift",
+    "y": "the tilt's noise over this voyage: too short or too noisy to carry the pitch-axis drift",
+    "z": "heading-axis bias: gravity shows a rotation about the hull's z only through its roll and pitch "
+         "(a degree or two), and no compass or heading reference is in the recording",
+}
+
+
+def gyro_bias_report(estimate: ShipEstimate, sigma_bound_deg_h: float | None = None) -> dict:
+    """The final gyro bias per axis with its marginal 1-sigma, each flagged ``determined`` or not.
+
+    A component whose sigma exceeds ``sigma_bound_deg_h`` is "not determined by this voyage", with the reason
+    (:data:`UNDETERMINED_REASON`); its value is kept for the record, never as a bare result.  The bound
+    defaults to :data:`BIAS_SIGMA_BOUND_DEG_H`.
+    """
+    if sigma_bound_deg_h is None:
+        sigma_bound_deg_h = BIAS_SIGMA_BOUND_DEG_H
+    sigma = np.sqrt(np.diag(estimate.gyro_bias_covariance)) / DEG_H
+    report = {"unit": "deg/h", "sigma_bound_deg_h": float(sigma_bound_deg_h), "components": {}}
+    for axis, value, s in zip("xyz", estimate.gyro_bias[-1] / DEG_H, sigma):
+        entry = {"value": float(value), "sigma": float(s), "determined": bool(s <= sigma_bound_deg_h)}
+        if not entry["determined"]:
+            entry["reason"] = f"not determined by this voyage: {UNDETERMINED_REASON[axis]}"
+        report["components"][axis] = entry
+    return report
+
+
+def gyro_bias_lines(report: dict) -> list[str]:
+    """The report as one line per axis: ``x +6.44 +- 2.43 deg/h`` or the value, sigma and why it is not a result."""
+    bound = report["sigma_bound_deg_h"]
+    lines = []
+    for axis, c in report["components"].items():
+        if c["determined"]:
+            lines.append(f"  gyro bias {axis}: {c['value']:+.3g} +- {c['sigma']:.2g} deg/h (1 sigma)")
+        else:
+            lines.append(f"  gyro bias {axis}: NOT DETERMINED by this voyage (sigma {c['sigma']:.3g} deg/h > "
+                         f"{bound:g}; value {c['value']:+.3g} deg/h is not a result): {UNDETERMINED_REASON[axis]}")
+    return lines
+
+
 def tum_text(estimate: ShipEstimate, t0_ns: int = 0) -> str:
     """TUM trajectory lines ``t x y z qx qy qz qw`` (attitude only: position 0), for evo."""
     q = Rotation.from_euler("ZYX", np.stack([estimate.yaw, estimate.pitch, estimate.roll], axis=1)).as_quat()
