@@ -29,7 +29,7 @@ from scipy.signal import savgol_filter
 from selfcal.core import inertial
 from selfcal.factors.ship import gyro_scale_rotation_factor, tilt_factor
 from selfcal.core.progress import quiet
-from selfcal.core.solve import lag_stamp_s, marginal_covariances, optimize
+from selfcal.core.solve import lag_stamp_s, optimize
 from selfcal.models import ship
 
 R_KEY, B_KEY, V_KEY = gtsam.symbol_shorthand.R, gtsam.symbol_shorthand.B, gtsam.symbol_shorthand.V
@@ -382,8 +382,7 @@ class ShipSmoother:
         bias = np.array([result.atVector(builder.bias_key(f.t_s)) for f in self.keyframes])
         speed = [result.atVector(builder.speed_key(f.t_s))[0] for f in self.keyframes if builder.unknown_speed(f)]
         progress("gyro bias covariance")
-        final_bias = builder.bias_key(self.keyframes[-1].t_s)
-        covariance = marginal_covariances(graph, result, [final_bias], "the gyro bias")[final_bias]
+        covariance = final_bias_covariance(graph, result, builder.bias_key(self.keyframes[-1].t_s))
         return ShipEstimate(self._times(), ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, time.perf_counter() - start,
                             *_constants(result), np.array(speed) if speed else None, covariance)
 
@@ -401,13 +400,26 @@ class ShipSmoother:
             if online.graph.unknown_speed(frame):
                 speeds.append(online.estimate.atVector(online.graph.last_speed_key)[0])
         rpy = np.array(attitudes)
-        covariance = online.smoother.marginalCovariance(online.graph.bias_key(self.keyframes[-1].t_s))
+        try:
+            covariance = online.smoother.marginalCovariance(online.graph.bias_key(self.keyframes[-1].t_s))
+        except RuntimeError:  # as final_bias_covariance: no axis vouched for
+            covariance = None
         return ShipEstimate(self._times(), rpy[:, 0], rpy[:, 1], rpy[:, 2], np.array(biases),
                             time.perf_counter() - start, *_constants(online.estimate),
                             np.array(speeds) if speeds else None, covariance)
 
     def _times(self) -> np.ndarray:
         return np.array([f.t_s for f in self.keyframes])
+
+
+def final_bias_covariance(graph, values, key: int) -> np.ndarray | None:
+    """The marginal covariance of the final bias segment (GTSAM's sparse marginals), or None when the information
+    matrix is singular or too badly conditioned for them (the report then vouches for no axis).  Never the dense
+    fallback of :func:`selfcal.core.solve.marginal_covariances`: an hour's voyage has 54,000 unknowns."""
+    try:
+        return gtsam.Marginals(graph, values).marginalCovariance(key)
+    except RuntimeError:
+        return None
 
 
 def _constants(values) -> tuple:
