@@ -54,8 +54,12 @@ def test_cli_prints_results_with_units_and_nothing_on_a_non_terminal_stderr(tmp_
     assert main(["smooth", "ship", str(rec), "--out", str(tmp_path / "a.tum")]) == 0
     captured = capsys.readouterr()
     assert captured.err == ""
-    summary, written = captured.out.splitlines()
-    number = r"-?[0-9.]+(?:e[-+][0-9]+)?"
-    assert re.fullmatch(rf"[0-9]+ attitudes over 60 s in {number} s \(batch\); final gyro bias x, y, z "
-                        rf"{number}, {number}, {number} deg/h", summary), summary
+    summary, *bias, written = captured.out.splitlines()
+    number = r"[-+]?[0-9.]+(?:e[-+][0-9]+)?"
+    assert re.fullmatch(rf"[0-9]+ attitudes over 60 s in {number} s \(batch\); final gyro bias:", summary), summary
+    assert len(bias) == 3
+    for axis, line in zip("xyz", bias):  # each axis with its sigma and unit, or flagged (issue 16, item 6)
+        assert re.fullmatch(rf"  gyro bias {axis}: ({number} \+- {number} deg/h \(1 sigma\)|NOT DETERMINED by this "
+                            rf"voyage \(value {number}, sigma {number} deg/h, bound 5 deg/h; not a result\): .+)",
+                            line), line
     assert written == f"trajectory: {tmp_path / 'a.tum'}"

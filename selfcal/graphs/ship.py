@@ -96,6 +96,7 @@ class ShipEstimate:
     speed_scale: float | None = None
     gyro_scale: np.ndarray | None = None
     speed_m_s: np.ndarray | None = None  # (K,) the unknown speed at the keyframes, when in the graph
+    gyro_bias_covariance: np.ndarray | None = None  # (3, 3) marginal of the final bias segment, (rad/s)^2
 
 
 def known_acceleration(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
@@ -380,8 +381,10 @@ class ShipSmoother:
         ypr = np.array([result.atRot3(R_KEY(k)).ypr() for k in range(len(self.keyframes))])
         bias = np.array([result.atVector(builder.bias_key(f.t_s)) for f in self.keyframes])
         speed = [result.atVector(builder.speed_key(f.t_s))[0] for f in self.keyframes if builder.unknown_speed(f)]
+        progress("gyro bias covariance")
+        covariance = final_bias_covariance(graph, result, builder.bias_key(self.keyframes[-1].t_s))
         return ShipEstimate(self._times(), ypr[:, 2], ypr[:, 1], ypr[:, 0], bias, time.perf_counter() - start,
-                            *_constants(result), np.array(speed) if speed else None)
+                            *_constants(result), np.array(speed) if speed else None, covariance)
 
     def online(self, lag_s: float = 60.0, progress=quiet) -> ShipEstimate:
         """The filtered attitudes (each as first solved), replayed through :class:`OnlineShip`."""
@@ -397,12 +400,26 @@ class ShipSmoother:
             if online.graph.unknown_speed(frame):
                 speeds.append(online.estimate.atVector(online.graph.last_speed_key)[0])
         rpy = np.array(attitudes)
+        try:
+            covariance = online.smoother.marginalCovariance(online.graph.bias_key(self.keyframes[-1].t_s))
+        except RuntimeError:  # as final_bias_covariance: no axis vouched for
+            covariance = None
         return ShipEstimate(self._times(), rpy[:, 0], rpy[:, 1], rpy[:, 2], np.array(biases),
                             time.perf_counter() - start, *_constants(online.estimate),
-                            np.array(speeds) if speeds else None)
+                            np.array(speeds) if speeds else None, covariance)
 
     def _times(self) -> np.ndarray:
         return np.array([f.t_s for f in self.keyframes])
+
+
+def final_bias_covariance(graph, values, key: int) -> np.ndarray | None:
+    """The marginal covariance of the final bias segment (GTSAM's sparse marginals), or None when the information
+    matrix is singular or too badly conditioned for them (the report then vouches for no axis).  Never the dense
+    fallback of :func:`selfcal.core.solve.marginal_covariances`: an hour's voyage has 54,000 unknowns."""
+    try:
+        return gtsam.Marginals(graph, values).marginalCovariance(key)
+    except RuntimeError:
+        return None
 
 
 def _constants(values) -> tuple:

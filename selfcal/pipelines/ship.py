@@ -74,6 +74,55 @@ def smooth_ship(recording: Recording, online: bool = False, remove_known_acceler
     return smoother.online(progress=progress) if online else smoother.batch(progress=progress)
 
 
+DEG_H = np.pi / 180.0 / 3600.0  # 1 deg/h in rad/s
+BIAS_SIGMA_BOUND_DEG_H = 5.0  # a bias component known worse than this (1 sigma) is not reported as a number: at 5
+# deg/h a ship gyro's 10 deg/h bias is not told from zero at 2 sigma (docs/ship.md, "What a voyage determines")
+UNDETERMINED_REASON = {
+    "x": "its sigma exceeds the bound: the tilt's noise over a voyage this short cannot carry the roll-axis drift",
+    "y": "its sigma exceeds the bound: the tilt's noise over a voyage this short cannot carry the pitch-axis drift",
+    "z": "heading-axis bias: gravity shows a rotation about the hull's z only through the roll and pitch (a degree "
+         "or two), no heading reference is recorded, and the graph's own sigma for it is not a valid bound "
+         "(20 turning voyages: NEES far above its chi-square interval, docs/ship.md)",
+}
+# The heading axis is never vouched for, whatever its sigma: measured inconsistent (benchmarks/ship_bias_consistency.py)
+UNVOUCHED_AXES = ("z",)
+
+
+def gyro_bias_report(estimate: ShipEstimate, sigma_bound_deg_h: float | None = None) -> dict:
+    """The final gyro bias per axis with its marginal 1-sigma, each flagged ``determined`` or not.
+
+    A component whose sigma exceeds ``sigma_bound_deg_h`` (default :data:`BIAS_SIGMA_BOUND_DEG_H`), and the
+    heading axis always (:data:`UNVOUCHED_AXES`), is "not determined by this voyage", with the reason
+    (:data:`UNDETERMINED_REASON`); its value and sigma are kept for the record, never as a bare result.
+    """
+    if sigma_bound_deg_h is None:
+        sigma_bound_deg_h = BIAS_SIGMA_BOUND_DEG_H
+    covariance = estimate.gyro_bias_covariance
+    sigma = np.full(3, np.inf) if covariance is None else np.sqrt(np.diag(covariance)) / DEG_H  # singular: no axis
+    report = {"unit": "deg/h", "sigma_bound_deg_h": float(sigma_bound_deg_h), "components": {}}
+    for axis, value, s in zip("xyz", estimate.gyro_bias[-1] / DEG_H, sigma):
+        determined = bool(s <= sigma_bound_deg_h) and axis not in UNVOUCHED_AXES
+        entry = {"value": float(value), "sigma": float(s) if np.isfinite(s) else None, "determined": determined}
+        if not determined:
+            entry["reason"] = f"not determined by this voyage: {UNDETERMINED_REASON[axis]}"
+        report["components"][axis] = entry
+    return report
+
+
+def gyro_bias_lines(report: dict) -> list[str]:
+    """The report as one line per axis: ``x +6.44 +- 2.43 deg/h`` or the value, sigma and why it is not a result."""
+    bound = report["sigma_bound_deg_h"]
+    lines = []
+    for axis, c in report["components"].items():
+        if c["determined"]:
+            lines.append(f"  gyro bias {axis}: {c['value']:+.3g} +- {c['sigma']:.2g} deg/h (1 sigma)")
+        else:
+            sigma = "unknown (singular information)" if c["sigma"] is None else f"{c['sigma']:.3g} deg/h"
+            lines.append(f"  gyro bias {axis}: NOT DETERMINED by this voyage (value {c['value']:+.3g}, sigma {sigma}, "
+                         f"bound {bound:g} deg/h; not a result): {UNDETERMINED_REASON[axis]}")
+    return lines
+
+
 def tum_text(estimate: ShipEstimate, t0_ns: int = 0) -> str:
     """TUM trajectory lines ``t x y z qx qy qz qw`` (attitude only: position 0), for evo."""
     q = Rotation.from_euler("ZYX", np.stack([estimate.yaw, estimate.pitch, estimate.roll], axis=1)).as_quat()
