@@ -15,7 +15,7 @@ per-seed ratio to the patent; 20 seeds by default, 3 with --quick):
 * resident memory over a long fixed-lag run (3 h in the full run, 20 min in --quick), sampled along the way.
 
 Runs last 600 s (the default fault schedule needs 10 min; 20 seeds take about an hour here); ``--duration 120``
-(the --quick length) uses a 120 s schedule with every fault kind once.
+(the --quick length) uses a 120 s schedule with every fault kind once, scaled in time for shorter runs.
 
 Usage: ``.venv/bin/python benchmarks/tracker_vs_patent.py [--quick] [--seeds 20] [--duration 600] [--json PATH]``
 """
@@ -159,12 +159,15 @@ def memory_run(duration_s: float, sample_every_s: float):
     return marks
 
 
-def _quick_faults():
-    """A 120 s schedule with every fault kind once (the default schedule needs >= 10 min for its soft faults)."""
+def _quick_faults(duration_s: float = 120.0):
+    """A 120 s schedule with every fault kind once (the default schedule needs >= 10 min for its soft faults);
+    for shorter runs its times are scaled to the duration (a spike's and a jump's length kept)."""
     from selfcal.sim.tracker import Fault
-    return [Fault("incl0", "spike", 20.0, 20.05, np.radians(1.5), 0), Fault("tracker0", "dropout", 30.0, 34.0),
-            Fault("tracker0", "jump", 45.0, 45.06, 0.015, 0, (0.0, 0.6, 0.8)),
-            Fault("incl0", "ramp", 55.0, 80.0, np.radians(0.01), 1), Fault("incl0", "stuck", 90.0, 110.0)]
+    k = min(duration_s / 120.0, 1.0)
+    return [Fault("incl0", "spike", 20.0 * k, 20.0 * k + 0.05, np.radians(1.5), 0),
+            Fault("tracker0", "dropout", 30.0 * k, 34.0 * k),
+            Fault("tracker0", "jump", 45.0 * k, 45.0 * k + 0.06, 0.015, 0, (0.0, 0.6, 0.8)),
+            Fault("incl0", "ramp", 55.0 * k, 80.0 * k, np.radians(0.01), 1), Fault("incl0", "stuck", 90.0 * k, 110.0 * k)]
 
 
 def main(argv=None):
@@ -172,7 +175,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seeds", type=int, help=f"scenario seeds 1, 2, ... (default {_schema.DEFAULT_SEEDS}; 3 with --quick)")
     ap.add_argument("--duration", type=float,
-                    help="run length in s (default 600; 120 with --quick); below 600 s the 120 s fault schedule")
+                    help="run length in s (default 600; 120 with --quick); below 600 s the 120 s fault schedule "
+                         "(its times scaled below 120 s)")
     ap.add_argument("--json", default=str(RESULTS / "tracker_vs_patent.json"))
     args = ap.parse_args(argv)
     start = time.perf_counter()
@@ -185,7 +189,7 @@ def main(argv=None):
     for seed in seeds:
         for faults in (False, True):
             sc = TrackerScenario(duration_s=duration, seed=seed, faults=faults if not short else (
-                _quick_faults() if faults else False))
+                _quick_faults(duration) if faults else False))
             rec = sc.measurements(seed=100 + seed)
             jobs = {"gated": lambda: graph_run(sc, rec), "ungated": lambda: graph_run(sc, rec, gating=False),
                     "batch": lambda: graph_run(sc, rec, mode="batch"), "patent": lambda: baseline_run(sc, rec),
