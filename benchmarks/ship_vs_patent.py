@@ -106,7 +106,7 @@ def main():
                 if seed == seeds[0] and (remove or kind == "turning"):  # kept: where the patent's assumption breaks
                     traces[name] = trace
             p, b, o = res["patent"], res["graph_batch"], res["graph_isam2"]
-            print(f"\n== {name} ({args.duration:.0f} s; seed {seed} of {len(seeds)})")
+            print(f"\n== {name} ({args.duration:.0f} s; the last of {len(seeds)} seeds, {seed})")
             for label, r in (("patent", p), ("graph batch", b), ("graph iSAM2", o)):
                 print(f"  {label:12s} roll RMS {r['roll_rms_deg']:.4f} deg, pitch RMS {r['pitch_rms_deg']:.4f} deg, "
                       f"drift {r['roll_drift_deg']:+.4f}/{r['pitch_drift_deg']:+.4f} deg, {r['seconds']:.1f} s")
