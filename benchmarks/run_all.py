@@ -220,8 +220,20 @@ def main() -> int:
     parser.add_argument("--compare", help="an earlier combined JSON: print the change of every metric")
     parser.add_argument("--collect", action="store_true",
                         help="do not run: combine the benchmarks' existing benchmarks/results/<name>.json")
+    parser.add_argument("--markdown", action="store_true",
+                        help="no run: print every distribution row of the existing results as README table lines")
     parser.add_argument("--timeout", type=float, help="seconds per benchmark (default 600 quick, 7200 full)")
     args = parser.parse_args()
+    if args.markdown:
+        print(_schema.MARKDOWN_HEADER)
+        for path in sorted(_schema.RESULTS.glob("*.json")):
+            doc = json.loads(path.read_text())
+            if args.only and args.only not in path.stem:
+                continue
+            for r in doc.get("rows", []):
+                if "distribution" in r:
+                    print(_schema.markdown_row(path.name, r))
+        return 0
     scripts, skipped = discover()
     if args.only:
         scripts = [s for s in scripts if args.only in s.stem]

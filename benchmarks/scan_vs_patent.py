@@ -4,7 +4,8 @@ Per seeded run (a simulated tunnel scan with sphere targets, INS error terms dra
 sphere-spacing error of every sphere pair, measured by fitting each sphere (known radius) in the cloud itself,
 for the inertial-only scan, the joint graph (batch LM and iSAM2), and the patent's two stages (stage-2 weights:
 the stage-1 information with the centres marginalised, the stronger reading; and the literal reading, every
-optimal pose a full measurement); the time of each estimator; the NEES of the error terms.  Then a Monte
+optimal pose a full measurement); the time of each estimator; the NEES of the error terms.  Each scan's
+sphere-spacing RMS is one seed's figure: median, 90th percentile and worst over the seeds, with the per-seed ratio.  Then a Monte
 Carlo of the sphere centres against their reported covariance (chi-square bounds).  Usage:
 
     .venv/bin/python benchmarks/scan_vs_patent.py [--quick] [--runs N] [--json out.json]
@@ -126,12 +127,13 @@ def plot(results, path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, help="scans per estimator (default 8; --quick 2)")
+    parser.add_argument("--runs", type=int,
+                        help=f"scans (seeds) per estimator (default {_schema.DEFAULT_SEEDS}; --quick 3)")
     parser.add_argument("--plot", default=str(_schema.RESULTS / "scan_vs_patent.png"))
     _schema.add_arguments(parser, "scan_vs_patent")
     args = parser.parse_args()
     started = time.perf_counter()
-    runs = args.runs or (2 if args.quick else 8)
+    runs = args.runs or (3 if args.quick else _schema.DEFAULT_SEEDS)
     scenario = ScanScenario(length_m=10.0, n_spheres=5) if args.quick else ScanScenario()
     with tempfile.TemporaryDirectory() as tmp:
         results = [one_run(seed, scenario, Path(tmp)) for seed in range(runs)]
@@ -142,15 +144,22 @@ def main():
                                                                    "patent_literal"))
     t_g, t_o, t_p = (float(np.mean([r[k] for r in results])) for k in ("graph_s", "online_s", "patent_s"))
     theta_nees = float(np.mean([r["theta_nees"] for r in results]))
+    per_seed = {k: [rms([r[k]]) * 1e3 for r in results] for k in ("inertial", "graph", "online", "patent",
+                                                                   "patent_literal")}
+    max_per_seed = {k: [float(np.abs(r[k]).max()) * 1e3 for r in results] for k in ("graph", "inertial")}
     rows = [
-        _schema.row("sphere-spacing RMS, joint graph vs inertial-only", "mm", gr * 1e3, ins * 1e3,
-                    note="baseline = the uncorrected INS scan; target ratio >= 10"),
-        _schema.row("sphere-spacing RMS, joint graph vs patent two-stage (informed weights)", "mm", gr * 1e3, pa * 1e3),
-        _schema.row("sphere-spacing RMS, joint graph vs patent two-stage (literal)", "mm", gr * 1e3, pl * 1e3),
-        _schema.row("sphere-spacing RMS, iSAM2 online vs patent (informed)", "mm", on * 1e3, pa * 1e3),
-        _schema.row("max sphere-spacing error, joint graph vs inertial-only", "mm",
-                    max(np.abs(r["graph"]).max() for r in results) * 1e3,
-                    max(np.abs(r["inertial"]).max() for r in results) * 1e3),
+        _schema.distribution("sphere-spacing RMS per scan, joint graph vs inertial-only", "mm", per_seed["graph"],
+                             per_seed["inertial"], note="baseline = the uncorrected INS scan; target ratio >= 10"),
+        _schema.distribution("sphere-spacing RMS per scan, joint graph vs patent two-stage (informed weights)", "mm",
+                             per_seed["graph"], per_seed["patent"]),
+        _schema.distribution("sphere-spacing RMS per scan, joint graph vs patent two-stage (literal)", "mm",
+                             per_seed["graph"], per_seed["patent_literal"]),
+        _schema.distribution("sphere-spacing RMS per scan, iSAM2 online vs patent (informed)", "mm",
+                             per_seed["online"], per_seed["patent"]),
+        _schema.distribution("max sphere-spacing error per scan, joint graph vs inertial-only", "mm",
+                             max_per_seed["graph"], max_per_seed["inertial"]),
+        _schema.row("sphere-spacing RMS over all scans, joint graph vs patent two-stage (informed weights)", "mm",
+                    gr * 1e3, pa * 1e3),
         _schema.row("estimation time per scan, joint graph (LM) vs patent (informed)", "s", t_g, t_p),
         _schema.row("estimation time per scan, iSAM2 (all spheres) vs patent (informed)", "s", t_o, t_p),
         _schema.row("error-term NEES (15 dof when honest), joint graph", "1", theta_nees),
@@ -162,10 +171,12 @@ def main():
     extra = {"runs": len(results), "skipped": skipped, "scenario_length_m": scenario.length_m,
              "spheres_per_scan": scenario.n_spheres, "points_per_scan": [r["points"] for r in results],
              "centre_monte_carlo": mc, "detect_s_mean": float(np.mean([r["detect_s"] for r in results])),
-             "per_run_spacing_rms_mm": {k: [rms([r[k]]) * 1e3 for r in results]
-                                        for k in ("inertial", "graph", "online", "patent", "patent_literal")}}
+             "seeds": [r["seed"] for r in results], "per_run_spacing_rms_mm": per_seed}
     _schema.write(args.json, "scan_vs_patent", "scan", args.quick, time.perf_counter() - started, rows, extra)
     for r in rows:
+        if "distribution" in r:
+            print(_schema.describe(r))
+            continue
         ratio = f"{r['ratio']:.3g}" if r["ratio"] is not None else "-"
         base = f"{r['baseline']:.4g}" if r["baseline"] is not None else "-"
         print(f"{r['metric']:75s} {r['library']:.4g} vs {base} {r['unit']} (ratio {ratio})")

@@ -1,6 +1,7 @@
 """Laser-tracker target (patent 004): the gated factor graph against the patent's SMFAFKF, same simulated runs.
 
-Measures, side by side in one run:
+Measures, side by side in one run, each accuracy figure per seed (median, 90th percentile, worst, and of the
+per-seed ratio to the patent; 20 seeds by default, 3 with --quick):
 * attitude and position RMSE of the gated graph (fixed-lag, online poses), the same graph without gating, the
   batch smoother, and the patent's filter as written (and without its fault detection), on fault-free and on
   fault-injected runs of the same scenario seeds;
@@ -13,7 +14,10 @@ Measures, side by side in one run:
   estimator for 200 Hz IMU + 50 Hz tracker + 10 Hz inclinometer + 10 Hz camera, one thread;
 * resident memory over a long fixed-lag run (3 h in the full run, 20 min in --quick), sampled along the way.
 
-Usage: ``.venv/bin/python benchmarks/tracker_vs_patent.py [--quick] [--json PATH]``
+Runs last 600 s (the default fault schedule needs 10 min; 20 seeds take about an hour here); ``--duration 120``
+(the --quick length) uses a 120 s schedule with every fault kind once, scaled in time for shorter runs.
+
+Usage: ``.venv/bin/python benchmarks/tracker_vs_patent.py [--quick] [--seeds 20] [--duration 600] [--json PATH]``
 """
 from __future__ import annotations
 
@@ -36,6 +40,8 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 from selfcal.io.atomic import atomic_write_text  # noqa: E402
 from selfcal.pipelines.tracker import OnlineTracker, noise_from_meta, patent_baseline, smooth_tracker  # noqa: E402
 from selfcal.sim.tracker import TrackerScenario  # noqa: E402
+
+import _schema  # noqa: E402  benchmarks/_schema.py: the results schema (its distribution rows)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -153,29 +159,37 @@ def memory_run(duration_s: float, sample_every_s: float):
     return marks
 
 
-def _quick_faults():
-    """A 120 s schedule with every fault kind once (the default schedule needs >= 10 min for its soft faults)."""
+def _quick_faults(duration_s: float = 120.0):
+    """A 120 s schedule with every fault kind once (the default schedule needs >= 10 min for its soft faults);
+    for shorter runs its times are scaled to the duration (a spike's and a jump's length kept)."""
     from selfcal.sim.tracker import Fault
-    return [Fault("incl0", "spike", 20.0, 20.05, np.radians(1.5), 0), Fault("tracker0", "dropout", 30.0, 34.0),
-            Fault("tracker0", "jump", 45.0, 45.06, 0.015, 0, (0.0, 0.6, 0.8)),
-            Fault("incl0", "ramp", 55.0, 80.0, np.radians(0.01), 1), Fault("incl0", "stuck", 90.0, 110.0)]
+    k = min(duration_s / 120.0, 1.0)
+    return [Fault("incl0", "spike", 20.0 * k, 20.0 * k + 0.05, np.radians(1.5), 0),
+            Fault("tracker0", "dropout", 30.0 * k, 34.0 * k),
+            Fault("tracker0", "jump", 45.0 * k, 45.0 * k + 0.06, 0.015, 0, (0.0, 0.6, 0.8)),
+            Fault("incl0", "ramp", 55.0 * k, 80.0 * k, np.radians(0.01), 1), Fault("incl0", "stuck", 90.0 * k, 110.0 * k)]
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--seeds", type=int, help=f"scenario seeds 1, 2, ... (default {_schema.DEFAULT_SEEDS}; 3 with --quick)")
+    ap.add_argument("--duration", type=float,
+                    help="run length in s (default 600; 120 with --quick); below 600 s the 120 s fault schedule "
+                         "(its times scaled below 120 s)")
     ap.add_argument("--json", default=str(RESULTS / "tracker_vs_patent.json"))
     args = ap.parse_args(argv)
     start = time.perf_counter()
-    duration = 120.0 if args.quick else 600.0
-    seeds = [1] if args.quick else [1, 2, 3]
+    duration = args.duration or (120.0 if args.quick else 600.0)
+    seeds = list(range(1, 1 + (args.seeds or (3 if args.quick else _schema.DEFAULT_SEEDS))))
+    short = duration < 600.0  # the default schedule's soft faults need >= 10 min
     table = {}
     delays = []
     stage_seconds = {}
     for seed in seeds:
         for faults in (False, True):
-            sc = TrackerScenario(duration_s=duration, seed=seed, faults=faults if not args.quick else (
-                _quick_faults() if faults else False))
+            sc = TrackerScenario(duration_s=duration, seed=seed, faults=faults if not short else (
+                _quick_faults(duration) if faults else False))
             rec = sc.measurements(seed=100 + seed)
             jobs = {"gated": lambda: graph_run(sc, rec), "ungated": lambda: graph_run(sc, rec, gating=False),
                     "batch": lambda: graph_run(sc, rec, mode="batch"), "patent": lambda: baseline_run(sc, rec),
@@ -195,8 +209,11 @@ def main(argv=None):
                 delays.extend(detection_delays(sc, runs["gated"]["decisions"]))
             print(f"seed {seed} faults={faults}: " + ", ".join(
                 f"{n} {r['att_deg']:.4f} deg {r['pos_mm']:.3f} mm" for n, r in runs.items()), flush=True)
-    mean = {k: np.sqrt(np.mean(np.square(v), axis=0)) for k, v in table.items()}
+    per_seed = {k: np.array(v) for k, v in table.items()}  # (seeds, 3): attitude, position, position at tracker
     rows = []
+
+    def dist(metric, unit, lib, base=None, note=""):
+        rows.append(_schema.distribution(metric, unit, lib, base, note=note))
 
     def row(metric, unit, lib, base, better="lower", note="baseline / library; > 1 means the library is better"):
         ratio = None if base is None or lib in (None, 0) else (base / lib if better == "lower" else lib / base)
@@ -207,23 +224,23 @@ def main(argv=None):
         tag = "with faults" if faults else "fault-free"
         for i, (q, unit) in enumerate((("attitude RMSE", "deg"), ("position RMSE over all outputs", "mm"),
                                        ("position RMSE at tracker sample times", "mm"))):
-            row(f"{q}, {tag}: gated graph (online) vs patent 004 filter", unit, float(mean[("gated", faults)][i]),
-                float(mean[("patent", faults)][i]))
-            row(f"{q}, {tag}: gated graph vs patent filter without its fault detection", unit,
-                float(mean[("gated", faults)][i]), float(mean[("patent_no_fd", faults)][i]))
-            row(f"{q}, {tag}: gated graph vs the same graph without gating", unit,
-                float(mean[("gated", faults)][i]), float(mean[("ungated", faults)][i]))
-            row(f"{q}, {tag}: batch smoother (gated) vs patent filter", unit, float(mean[("batch", faults)][i]),
-                float(mean[("patent", faults)][i]))
+            dist(f"{q}, {tag}: gated graph (online) vs patent 004 filter", unit, per_seed[("gated", faults)][:, i],
+                 per_seed[("patent", faults)][:, i])
+            dist(f"{q}, {tag}: gated graph vs patent filter without its fault detection", unit,
+                 per_seed[("gated", faults)][:, i], per_seed[("patent_no_fd", faults)][:, i])
+            dist(f"{q}, {tag}: gated graph vs the same graph without gating", unit,
+                 per_seed[("gated", faults)][:, i], per_seed[("ungated", faults)][:, i])
+            dist(f"{q}, {tag}: batch smoother (gated) vs patent filter", unit, per_seed[("batch", faults)][:, i],
+                 per_seed[("patent", faults)][:, i])
     for i, (q, unit) in enumerate((("attitude", "deg"), ("position (all outputs)", "mm"),
                                    ("position at tracker sample times", "mm"))):
-        row(f"gated graph {q} RMSE with faults / fault-free (target <= 1.2)", "ratio",
-            float(mean[("gated", True)][i] / mean[("gated", False)][i]), None, note="library only")
+        dist(f"gated graph {q} RMSE with faults / fault-free (target <= 1.2)", "ratio",
+             per_seed[("gated", True)][:, i] / per_seed[("gated", False)][:, i], note="library only; per seed")
     for i, (q, unit) in enumerate((("attitude", "deg"), ("position (all outputs)", "mm"),
                                    ("position at tracker sample times", "mm"))):
-        row(f"gated graph {q} RMSE with faults / fault-free, inclinometer dropped exactly over its soft faults "
-            "(oracle detector)", "ratio", float(mean[("oracle", True)][i] / mean[("oracle", False)][i]), None,
-            note="library only; the floor that detection cannot beat: what holding the sensor out costs")
+        dist(f"gated graph {q} RMSE with faults / fault-free, inclinometer dropped exactly over its soft faults "
+             "(oracle detector)", "ratio", per_seed[("oracle", True)][:, i] / per_seed[("oracle", False)][:, i],
+             note="library only; per seed; the floor that detection cannot beat: what holding the sensor out costs")
     detected = [d["delay_s"] for d in delays if d["delay_s"] is not None]
     row("inclinometer soft faults detected", "fraction", len(detected) / max(len(delays), 1), None, better="higher",
         note=f"{len(delays)} ramp/stuck faults injected")
@@ -276,8 +293,11 @@ def main(argv=None):
            "extra": {"stage_seconds": stage_seconds, "false_alarm_runs": false_alarms, "detections": delays, "throughput": tp, "memory": marks, "seeds": seeds, "duration_s": duration}}
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
+    atomic_write_text(path, json.dumps(_schema.clean(out), indent=1, allow_nan=False) + "\n")
     for r in rows:
+        if "distribution" in r:
+            print(_schema.describe(r))
+            continue
         lib = f"{r['library']:.4g}" if r["library"] is not None else "-"
         base = f"{r['baseline']:.4g}" if r["baseline"] is not None else "-"
         ratio = f"{r['ratio']:.2f}" if r["ratio"] is not None else ""
