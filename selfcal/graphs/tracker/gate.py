@@ -12,9 +12,9 @@ import logging
 import math
 
 import numpy as np
-from scipy.special import chdtri  # chi2 upper quantile; scipy.stats would cost ~1 s of start-up
 
 from selfcal.core import so3
+from selfcal.core.stats import chi2_upper_quantile  # scipy.special would cost ~0.4 s of start-up
 from selfcal.graphs.tracker.checks import FrozenOutput, SensorHealth, readmission
 from selfcal.graphs.tracker.eigen import EigenDetector
 from selfcal.graphs.tracker.options import GatingOptions
@@ -117,7 +117,7 @@ class Gate:
 
     def __init__(self, gating: GatingOptions, health: SensorHealth, frozen: FrozenOutput):
         self.gating, self.health, self.frozen = gating, health, frozen
-        self.threshold = {d: float(chdtri(d, gating.gate_alpha)) for d in (2, 3)}
+        self.threshold = {d: chi2_upper_quantile(d, gating.gate_alpha) for d in (2, 3)}
         self.consecutive_rejects: dict[str, int] = {}
         self.counts = {"accepted": 0, "rejected": 0, "held_out": 0}
         self._quiet_reported: dict[str, bool] = {}  # sensors said once to be quieter than their noise model

@@ -13,8 +13,8 @@ from functools import lru_cache
 
 import gtsam
 import numpy as np
-from scipy.special import chdtri  # chi2 upper quantile; scipy.stats would cost ~1 s of start-up
 
+from selfcal.core.stats import chi2_upper_quantile  # scipy.special would cost ~0.4 s of start-up
 from selfcal.factors import tracker as ft
 from selfcal.graphs.tracker.options import GatingOptions, SensorNoise
 from selfcal.models import tracker as mt
@@ -26,7 +26,7 @@ UP_BASIS = ft.UP_W.basis()  # (3, 2): the inclinometer factor's error is express
 @lru_cache(maxsize=64)
 def variance_ratio(dof: int, alpha: float) -> float:
     """chi2(dof).ppf(1 - alpha) / dof: a sample variance above ``white`` times this is significant at ``alpha``."""
-    return float(chdtri(dof, alpha) / dof)
+    return chi2_upper_quantile(dof, alpha) / dof
 
 
 class AccelHistory:
