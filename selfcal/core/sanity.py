@@ -58,9 +58,10 @@ MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
 GAIN_RANGE = (0.1, 10.0)  # units differ by 57 (deg) or 1000 (mrad); aliased vibration moved it to 0.24
 
 
-def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x", "a_y", "a_z")) -> list[str]:
+def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x", "a_y", "a_z"),
+                 gaps_allowed: bool = False) -> list[str]:
     """One line per physical problem of an IMU recording (empty: nothing found); ``columns`` names the six
-    columns in the messages."""
+    columns in the messages; ``gaps_allowed``: for an online replay, which starts over at a gap."""
     t = np.asarray(t_s, dtype=float)
     w = np.asarray(gyro_rad_s, dtype=float)
     a = np.asarray(accel_m_s2, dtype=float)
@@ -77,7 +78,8 @@ def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x
                        f"is beyond any sensor's range ({limit:g} {unit}): a placeholder or a mis-read column")
     if out:
         return out
-    out += _gap(t)
+    if not gaps_allowed:  # an online estimator starts over at a gap instead (and says so)
+        out += _gap(t)
     out += _accel_units(t, a)
     if not out:
         out += _gyro_units(t, w, a) or _gyro_tilt_gain(t, w, a)

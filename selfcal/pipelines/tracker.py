@@ -144,18 +144,19 @@ def recording_events(recording: Recording):
 
 
 def check_recording(recording: Recording) -> None:
-    """What :func:`smooth_tracker` refuses before it starts (``selfcal track --replay`` applies it too)."""
+    """What ``selfcal track --replay`` refuses before it starts: what :func:`smooth_tracker` refuses, but a gap
+    (the online estimator starts over there)."""
     for name in ("imu0", "tracker0", "incl0"):
         if name not in recording.sensors:
             raise RecordingError(f"{recording.path}: the tracker system needs sensor {name!r} "
                                  f"(has: {', '.join(sorted(recording.sensors))})")
-    check_sensors(recording)
+    check_sensors(recording, gaps_allowed=True)
 
 
-def check_sensors(recording: Recording) -> None:
+def check_sensors(recording: Recording, gaps_allowed: bool = False) -> None:
     """Refuse (RecordingError, one line) a recording whose sensors the tool cannot vouch for: the IMU's own gates
     (:meth:`Recording.imu`), tracker positions and inclinometer angles against the IMU (:mod:`selfcal.core.sanity`)."""
-    imu = recording.imu("imu0")
+    imu = recording.imu("imu0", gaps_allowed)
     t0_ns = int(imu.t_ns[0])
     t_imu = (imu.t_ns - t0_ns) * 1e-9
     tr = recording.sensors["tracker0"]
