@@ -312,6 +312,10 @@ class ScanEstimate:
     problem: gs.ScanProblem | None = None
     solution: gs.ScanSolution | None = None
     stages_s: dict = field(default_factory=dict)  # stage -> (wall s, CPU s of the process)
+    #: predicted 1-sigma of every corrected point along its worst direction, m (:func:`predicted_point_sigmas`)
+    point_sigma_m: np.ndarray | None = None
+    #: every pair of found spheres: (i, j, distance m, predicted 1-sigma m) (:func:`sphere_distances`)
+    distances: list = field(default_factory=list)
 
     def summary(self) -> str:
         s = [f"{len(self.points_W)} points, {len(self.centers)} spheres ({self.n_b_points} points on "
@@ -328,7 +332,15 @@ class ScanEstimate:
                             for c, C in zip(self.centers, self.centers_cov)],
                 "sphere_residual_rms_m": self.sphere_rms_m, "points": int(len(self.points_W)),
                 "set_b_points": self.n_b_points, "set_b_clocks": self.n_b_clocks, "seconds": self.seconds,
-                "mode": "online" if self.online else "batch"}
+                "mode": "online" if self.online else "batch", **self._predicted()}
+
+    def _predicted(self) -> dict:
+        out = {"sphere_distances": [{"between": [int(i), int(j)], "distance_m": float(d), "sigma_m": float(s)}
+                                    for i, j, d, s in self.distances]}
+        if self.point_sigma_m is not None and len(self.point_sigma_m):
+            q = np.percentile(self.point_sigma_m, [50, 95, 100])
+            out["point_sigma_m"] = {"median": float(q[0]), "p95": float(q[1]), "max": float(q[2])}
+        return out
 
 
 def solve_scan(data: ScanData, problem: gs.ScanProblem, model: gs.ScanModel = gs.ScanModel(), online: bool = False,
@@ -391,10 +403,41 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
     P, clock = data.world_points(R, r)
     res = np.concatenate(gs.sphere_residuals(problem, solution.values, model))
     lap("correction of all points")
+    progress("predicted accuracy")
+    sigma = predicted_point_sigmas(problem, solution, R, r, P, clock)
+    lap("predicted accuracy")
     return ScanEstimate(P, clock, theta, np.sqrt(np.diag(solution.theta_cov)), solution.centers,
                         solution.centers_cov, float(np.sqrt(np.mean(res**2))),
                         sum(len(o.vision_p) for o in problem.observations), len(problem.b_clocks()),
-                        time.perf_counter() - start, online, solution.extensions, problem, solution, stages)
+                        time.perf_counter() - start, online, solution.extensions, problem, solution, stages,
+                        sigma, sphere_distances(solution))
+
+
+def predicted_point_sigmas(problem: gs.ScanProblem, solution: gs.ScanSolution, R, r, points_W, clock) -> np.ndarray:
+    """Predicted 1-sigma (N,) of every corrected point (m, worst direction): the error terms' posterior and the
+    INS jitter through each clock's correction (:func:`selfcal.models.scan.point_error_sigmas`).
+
+    The point's own triangulation noise is not in it (white, per point: every fit averages it), nor the
+    uncertainty of estimated extensions (scale factors, clock offset): the base model's 15 terms only.
+    """
+    clocks = np.arange(len(problem.clock_t_s))
+    R_ins, r_ins, Phi, _ = gs.clock_inputs(problem, clocks)
+    _, _, J = ms.corrected_pose(R_ins, r_ins, Phi[:, :, :ms.N_TERMS], solution.theta, with_jacobian=True)
+    pose_cov = ms.corrected_pose_covariance(J, solution.theta_cov, problem.jitter_sigmas)
+    return ms.point_error_sigmas(R, r, pose_cov, points_W, clock)
+
+
+def sphere_distances(solution: gs.ScanSolution) -> list[tuple[int, int, float, float]]:
+    """Every pair of estimated sphere centres: ``(i, j, distance m, predicted 1-sigma m)`` from the joint
+    posterior of the centres (:func:`selfcal.models.scan.distance_sigmas`)."""
+    if solution.terms_centers_cov is None:
+        return []
+    found = np.flatnonzero(np.isfinite(solution.centers).all(axis=1))
+    pairs = np.array([(i, j) for k, i in enumerate(found) for j in found[k + 1:]], dtype=int).reshape(-1, 2)
+    if not len(pairs):
+        return []
+    d, sigma = ms.distance_sigmas(solution.centers, solution.terms_centers_cov[ms.N_TERMS:, ms.N_TERMS:], pairs)
+    return [(int(i), int(j), float(a), float(b)) for (i, j), a, b in zip(pairs, d, sigma)]
 
 
 def inertial_only_points(recording: Recording) -> np.ndarray:
