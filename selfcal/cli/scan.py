@@ -27,11 +27,15 @@ def simulate(args) -> None:
 def smooth_arguments(p) -> None:
     p.add_argument("recording")
     p.add_argument("--online", action="store_true", help="iSAM2, sphere by sphere, as the scan proceeds")
-    p.add_argument("--out", help="corrected point cloud (.ply, .pcd)")
-    p.add_argument("--estimates", help="YAML with the 15 INS error terms and sphere centres, each with its 1-sigma")
+    p.add_argument("--out", help="corrected point cloud (.ply, .pcd); a .ply carries each point's predicted 1-sigma "
+                   "(property sigma_m)")
+    p.add_argument("--estimates", help="YAML with the 15 INS error terms, sphere centres and sphere distances, each "
+                   "with its 1-sigma")
 
 
 def smooth(args) -> None:
+    import numpy as np
+
     from selfcal.core.progress import TerminalProgress
     from selfcal.io.recording import read_recording
     from selfcal.pipelines.scan import smooth_scan
@@ -40,10 +44,18 @@ def smooth(args) -> None:
     with TerminalProgress("smooth scan") as progress:
         est = smooth_scan(read_recording(args.recording), online=args.online, progress=progress)
     print(est.summary())
+    if est.point_sigma_m is not None:
+        q = np.percentile(est.point_sigma_m, [50, 95, 100]) * 1e3
+        print(f"predicted point 1-sigma (worst direction): median {q[0]:.3g} mm, p95 {q[1]:.3g} mm, max {q[2]:.3g} mm")
+    if est.distances:
+        worst = max(est.distances, key=lambda d: d[3])
+        print(f"predicted sphere-distance 1-sigma: up to {worst[3] * 1e3:.3g} mm (spheres {worst[0]}-{worst[1]})")
     if args.out:
         from selfcal.io.pointcloud import write_point_cloud
-        write_point_cloud(output(args.out), est.points_W)
-        print(f"corrected scan: {args.out}")
+        ply = Path(args.out).suffix.lower() == ".ply"
+        write_point_cloud(output(args.out), est.points_W,
+                          attributes={"sigma_m": est.point_sigma_m} if ply and est.point_sigma_m is not None else None)
+        print(f"corrected scan: {args.out}" + (" (per-point predicted 1-sigma as property sigma_m)" if ply else ""))
     if args.estimates:
         write_yaml(args.estimates, est.to_dict())
 

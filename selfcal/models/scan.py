@@ -362,6 +362,29 @@ def corrected_pose_covariance(pose_jacobian, terms_cov, jitter_sigmas) -> np.nda
     return J @ np.asarray(terms_cov, float) @ np.swapaxes(J, -1, -2) + np.diag(np.asarray(jitter_sigmas) ** 2)
 
 
+def rigid_gauge(velocity0_W) -> np.ndarray:
+    """The directions (15, 4) of the error terms that move the whole corrected scan rigidly: the initial
+    position (3) and a heading turn about the start, ``psi_z = 1`` with the velocity error ``z x v_0`` (then
+    ``dv(t) = psi_z z x v(t)`` and ``dr(t) = psi_z z x (r(t) - r_0)`` under the error dynamics: gravity is along
+    z, so a turn about z leaves the specific force consistent).  No sphere of unknown position sees them."""
+    G = np.zeros((N_TERMS, 4))
+    G[6:9, 0:3] = np.eye(3)
+    G[2, 3] = 1.0
+    G[3:6, 3] = np.cross([0.0, 0.0, 1.0], np.asarray(velocity0_W, float))
+    return G
+
+
+def shape_covariance(terms_cov, gauge) -> np.ndarray:
+    """Covariance of the error terms with their rigid part (:func:`rigid_gauge`) taken out:
+    ``Sigma - G (G^T Sigma^-1 G)^-1 G^T``, the covariance of ``P dtheta`` where ``P`` removes the rigid motion
+    that best (Mahalanobis) explains ``dtheta``: the scan's error *as a shape*, wherever the INS put it."""
+    S = np.asarray(terms_cov, float)
+    G = np.asarray(gauge, float)
+    SiG = np.linalg.solve(S, G)
+    out = S - G @ np.linalg.solve(G.T @ SiG, G.T)
+    return 0.5 * (out + out.T)
+
+
 def largest_eigenvalue_sym3(C) -> np.ndarray:
     """Largest eigenvalue (...,) of symmetric 3x3 matrices, closed form (trigonometric solution of the
     characteristic cubic; Smith, Comm. ACM 4(4) 168, 1961): elementwise, no LAPACK call per matrix."""

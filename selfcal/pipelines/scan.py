@@ -414,8 +414,10 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
 
 
 def predicted_point_sigmas(problem: gs.ScanProblem, solution: gs.ScanSolution, R, r, points_W, clock) -> np.ndarray:
-    """Predicted 1-sigma (N,) of every corrected point (m, worst direction): the error terms' posterior and the
-    INS jitter through each clock's correction (:func:`selfcal.models.scan.point_error_sigmas`).
+    """Predicted 1-sigma (N,) of every corrected point (m, worst direction) relative to the scan as a rigid
+    whole: the error terms' posterior without its rigid part (the INS's initial position and heading, which no
+    sphere of unknown position sees: :func:`selfcal.models.scan.shape_covariance`) and the INS jitter, through
+    each clock's correction (:func:`selfcal.models.scan.point_error_sigmas`).
 
     The point's own triangulation noise is not in it (white, per point: every fit averages it), nor the
     uncertainty of estimated extensions (scale factors, clock offset): the base model's 15 terms only.
@@ -423,7 +425,8 @@ def predicted_point_sigmas(problem: gs.ScanProblem, solution: gs.ScanSolution, R
     clocks = np.arange(len(problem.clock_t_s))
     R_ins, r_ins, Phi, _ = gs.clock_inputs(problem, clocks)
     _, _, J = ms.corrected_pose(R_ins, r_ins, Phi[:, :, :ms.N_TERMS], solution.theta, with_jacobian=True)
-    pose_cov = ms.corrected_pose_covariance(J, solution.theta_cov, problem.jitter_sigmas)
+    shape = ms.shape_covariance(solution.theta_cov, ms.rigid_gauge(problem.ins_v[0]))
+    pose_cov = ms.corrected_pose_covariance(J, shape, problem.jitter_sigmas)
     return ms.point_error_sigmas(R, r, pose_cov, points_W, clock)
 
 
