@@ -165,3 +165,33 @@ def test_shape_covariance_is_what_remains_after_the_best_rigid_fit():
     remaining = draws - (G @ alpha).T
     scale = np.sqrt(np.diag(Sigma))
     assert np.allclose(np.cov(remaining.T) / np.outer(scale, scale), shape / np.outer(scale, scale), atol=0.05)
+
+
+def test_the_plan_predicts_the_posterior_of_the_scan_it_plans(solved_scans):
+    """The planner's linear covariance analysis (noise-free sphere profiles, no tunnel, graph linearised at the
+    truth) gives the distance sigmas that solving the simulated scan of the same layout reports (within 5 %:
+    detection keeps slightly different points, and the linearisation point differs by the estimation error)."""
+    from selfcal.pipelines.scan import planned_problem, predicted_layout
+    for seed, (sim, sol) in zip(SEEDS, solved_scans):
+        sc = sim.scenario
+        problem = planned_problem(sc, sc.error_sigmas, np.r_[np.full(3, sc.ins_jitter_rad), np.full(3, sc.ins_jitter_m)],
+                                  seed=seed)
+        assert np.allclose(problem.centers0, sim.sphere_centers)  # the same layout
+        pairs, planned = predicted_layout(problem)
+        posterior = {(i, j): s for i, j, _, s in sphere_distances(sol)}
+        assert np.allclose(planned, [posterior[(i, j)] for i, j in pairs], rtol=0.05)
+
+
+def test_plan_finds_the_largest_spacing_that_meets_the_tolerance(tmp_path):
+    """``selfcal plan scan``: the layout it takes meets the tolerance and every layout with fewer spheres it
+    evaluated exceeds it; exit 0, and 3 when nothing meets the tolerance (4 m: at most 3 spheres)."""
+    import yaml
+
+    from selfcal.cli.main import main
+    assert main(["plan", "scan", "--length", "8", "--tolerance", "0.004", "--out", str(tmp_path / "plan.yaml")]) == 0
+    plan = yaml.safe_load((tmp_path / "plan.yaml").read_text())
+    chosen = next(c for c in plan["cases"] if c["spheres"] == plan["spheres"])
+    assert plan["feasible"] and chosen["meets"] and chosen["bound_m"] <= 0.004
+    assert all(not c["meets"] and c["bound_m"] > 0.004 for c in plan["cases"] if c["spheres"] < plan["spheres"])
+    assert plan["largest_spacing_m"] == pytest.approx((8.0 - 3.0) / (plan["spheres"] - 1))
+    assert main(["plan", "scan", "--length", "4", "--tolerance", "1e-5"]) == 3

@@ -503,7 +503,10 @@ def planned_problem(scenario, prior_sigmas, jitter_sigmas, seed: int = 0,
     the nominal path (:func:`selfcal.sim.scan.simulate_scan` with ``spheres_only``), an error-free INS on it,
     and the radial sigmas the stereo geometry gives each point, as :func:`detect_set_b` would assign them."""
     from selfcal.sim.scan import simulate_scan
-    exact = replace(scenario, pixel_sigma=0.0, ins_jitter_m=0.0, ins_jitter_rad=0.0, error_terms=np.zeros(ms.N_TERMS))
+    # zero sigmas rather than fixed zero terms: the random draws happen as in a simulated scan of the same seed,
+    # so the spheres stand where that scan has them
+    exact = replace(scenario, pixel_sigma=0.0, ins_jitter_m=0.0, ins_jitter_rad=0.0, error_terms=None,
+                    error_sigmas=np.zeros(ms.N_TERMS))
     sim = simulate_scan(exact, seed=seed, spheres_only=True)
     t = sim.ins_t_s
     R_c, r_c = sim.true_R, sim.true_r
