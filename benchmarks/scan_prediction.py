@@ -18,9 +18,11 @@ no data) against the distribution of realised RMS.  Usage:
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from dataclasses import replace
 from multiprocessing import Pool
+from pathlib import Path
 
 import numpy as np
 from scipy import stats
@@ -162,14 +164,28 @@ def main():
     parser.add_argument("--seeds", type=int, help="scans per scenario (default 20; --quick 3)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--scenarios", default="default,long")
+    parser.add_argument("--cache", help="JSON lines of per-seed results: appended as seeds finish, reused on a rerun")
     _schema.add_arguments(parser, "scan_prediction")
     args = parser.parse_args()
     started = time.perf_counter()
     scenarios = QUICK if args.quick else {k: SCENARIOS[k] for k in args.scenarios.split(",")}
     seeds = args.seeds or (3 if args.quick else 20)
-    tasks = [(name, sc, seed) for name, sc in scenarios.items() for seed in range(100, 100 + seeds)]
+    done = {}
+    if args.cache and Path(args.cache).is_file():  # per-seed results of an earlier (interrupted) run
+        for line in Path(args.cache).read_text().splitlines():
+            r = json.loads(line)
+            done[(r["scenario"], r["seed"])] = r
+    tasks = [(name, sc, seed) for name, sc in scenarios.items() for seed in range(100, 100 + seeds)
+             if (name, seed) not in done]
     with Pool(args.workers) as pool:
-        runs = pool.map(one_seed, tasks, chunksize=1)
+        for r in pool.imap_unordered(one_seed, tasks, chunksize=1):
+            done[(r["scenario"], r["seed"])] = r
+            print(f"{r['scenario']} seed {r['seed']}: spacing RMS {r.get('spacing_rms_m', float('nan')) * 1e3:.3g} mm, "
+                  f"predicted {r.get('predicted_rms_m', float('nan')) * 1e3:.3g} mm", flush=True)
+            if args.cache:
+                with open(args.cache, "a") as f:
+                    f.write(json.dumps(r) + "\n")
+    runs = [done[(name, seed)] for name in scenarios for seed in range(100, 100 + seeds) if (name, seed) in done]
     rows, extra = [], {}
     for name, sc in scenarios.items():
         plan = planner_prediction(replace(sc), 2 if args.quick else 5)

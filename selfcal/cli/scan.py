@@ -87,7 +87,8 @@ def ins_model(path):
     if sigmas is None or np.size(sigmas) != 15:
         raise UsageError(f"{path}: needs error_term_sigmas (15 values: the INS's error terms, docs/scan.md); "
                          "noise densities and random walks alone do not give the 15-term model")
-    jitter = np.r_[np.full(3, float(meta.get("pose_jitter_rad", 1e-5))), np.full(3, float(meta.get("pose_jitter_m", 5e-5)))]
+    jitter = np.r_[np.full(3, float(meta.get("pose_jitter_rad", 1e-5))),
+                   np.full(3, float(meta.get("pose_jitter_m", 5e-5)))]
     return np.asarray(sigmas, float), jitter
 
 

@@ -22,7 +22,8 @@ from selfcal.core.errors import SelfcalError
 log = logging.getLogger(__name__)
 
 __all__ = ["PointCloudError", "LoadedCloud", "points_of", "cloud_from_points", "read_point_cloud",
-           "write_point_cloud", "read_point_attribute", "point_cloud_bytes", "read_triangle_mesh", "write_triangle_mesh"]
+           "write_point_cloud", "read_point_attribute", "point_cloud_bytes", "read_triangle_mesh",
+           "write_triangle_mesh"]
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".gltf", ".glb")

@@ -41,7 +41,8 @@ from selfcal.pipelines.qc.figures import (DeviationResult, PlaneResult, SphereRe
 from selfcal.pipelines.qc.spec import QCSpec, QCSpecError, SphereSpec, Tolerances
 
 __all__ = ["QCSpec", "QCSpecError", "Check", "QCResult", "PredictionResult", "prediction_check", "run_qc",
-           "scan_points", "detection_planes", "sphere_checks", "sphere_spacing_checks", "flatness_checks", "deviation_checks"]
+           "scan_points", "detection_planes", "sphere_checks", "sphere_spacing_checks", "flatness_checks",
+           "deviation_checks"]
 
 log = logging.getLogger(__name__)
 

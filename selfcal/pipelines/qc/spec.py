@@ -1,7 +1,7 @@
 """The QC spec of ``selfcal qc``: what to look for in a scan and the tolerances it must meet (YAML).
 
-Sections ``spheres``, ``planes``, ``detection``, ``reference``, ``tolerances``, ``prediction`` and ``seed``; every length in
-metres; every key optional (a missing tolerance means the figure is reported, not judged).  The format, with
+Sections ``spheres``, ``planes``, ``detection``, ``reference``, ``tolerances``, ``prediction`` and ``seed``;
+every length in metres; every key optional (a missing tolerance means the figure is reported, not judged).  The format, with
 an example, is documented in ``docs/qc.md``.  Unknown keys are refused (a misspelt tolerance must not
 silently pass a scan).  This module needs neither open3d nor the estimators, so the CLI can import its
 error class cheaply.
