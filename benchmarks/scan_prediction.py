@@ -164,6 +164,8 @@ def main():
     parser.add_argument("--seeds", type=int, help="scans per scenario (default 20; --quick 3)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--scenarios", default="default,long")
+    parser.add_argument("--first-seed", type=int, default=100)
+    parser.add_argument("--summarise-only", action="store_true", help="only the seeds already in --cache")
     parser.add_argument("--cache", help="JSON lines of per-seed results: appended as seeds finish, reused on a rerun")
     _schema.add_arguments(parser, "scan_prediction")
     args = parser.parse_args()
@@ -175,8 +177,9 @@ def main():
         for line in Path(args.cache).read_text().splitlines():
             r = json.loads(line)
             done[(r["scenario"], r["seed"])] = r
-    tasks = [(name, sc, seed) for name, sc in scenarios.items() for seed in range(100, 100 + seeds)
-             if (name, seed) not in done]
+    seed_range = range(args.first_seed, args.first_seed + seeds)
+    tasks = [(name, sc, seed) for name, sc in scenarios.items() for seed in seed_range
+             if (name, seed) not in done and not args.summarise_only]
     with Pool(args.workers) as pool:
         for r in pool.imap_unordered(one_seed, tasks, chunksize=1):
             done[(r["scenario"], r["seed"])] = r
@@ -185,7 +188,7 @@ def main():
             if args.cache:
                 with open(args.cache, "a") as f:
                     f.write(json.dumps(r) + "\n")
-    runs = [done[(name, seed)] for name in scenarios for seed in range(100, 100 + seeds) if (name, seed) in done]
+    runs = [done[(name, seed)] for name in scenarios for seed in seed_range if (name, seed) in done]
     rows, extra = [], {}
     for name, sc in scenarios.items():
         plan = planner_prediction(replace(sc), 2 if args.quick else 5)
