@@ -20,6 +20,7 @@ GROUPS = {  # verbs that take a system as their next word
     "smooth": "smooth a recording offline (or replay it online with --online)",
     "simulate": "write a simulated recording (ground truth in truth/)",
     "measure": "measure with a calibrated instrument",
+    "plan": "plan a measurement before making it (predicted accuracy, no data needed)",
 }
 SHARED = ("audit", "importers", "streams", "fleet")  # cli modules of the verbs every system shares
 

@@ -5,7 +5,7 @@ import json
 
 from selfcal.cli.common import UsageError, Verb, output, plain
 
-QC_EXIT_CODES = {"pass": 0, "reported": 0, "fail": 3, "incomplete": 4}  # 1 is an error, 2 a usage error
+QC_EXIT_CODES = {"pass": 0, "reported": 0, "fail": 3, "incomplete": 4, "cannot be vouched for": 5}  # 1 is an error, 2 a usage error
 
 
 def qc_arguments(p) -> None:
@@ -22,7 +22,7 @@ def qc_arguments(p) -> None:
 def qc(args) -> int:
     from selfcal.core.progress import TerminalProgress
     from selfcal.io.atomic import atomic_write_text
-    from selfcal.io.pointcloud import read_point_cloud, read_triangle_mesh
+    from selfcal.io.pointcloud import read_point_attribute, read_point_cloud, read_triangle_mesh
     from selfcal.pipelines.qc.checks import run_qc
     from selfcal.pipelines.qc.report import write_reports
     from selfcal.pipelines.qc.spec import QCSpec
@@ -33,7 +33,8 @@ def qc(args) -> int:
         progress("read the scan")
         mesh = read_triangle_mesh(args.reference) if args.reference else None
         loaded = read_point_cloud(args.scan, drop_nonfinite=True)
-        result = run_qc(loaded, spec, mesh, args.reference, progress=progress)
+        sigma = read_point_attribute(args.scan, "sigma_m")  # the predicted accuracy 'smooth scan' writes
+        result = run_qc(loaded, spec, mesh, args.reference, progress=progress, point_sigma_m=sigma)
         progress("write the reports")
         written = write_reports(result, html_path=output(args.report) if args.report else None,
                                 markdown_path=output(args.markdown) if args.markdown else None,
@@ -55,4 +56,5 @@ def qc(args) -> int:
 
 VERBS = (Verb("qc", "quality control of a scan (VDI/VDE 2634-2 figures, deviation from a reference)", qc_arguments, qc,
               epilog="exit status: 0 pass (or figures only), 3 fail, 4 incomplete (a toleranced check could not be "
-                     "made), 1 error"),)
+                     "made), 5 cannot be vouched for (the scan's predicted accuracy misses the point tolerance), "
+                     "1 error"),)

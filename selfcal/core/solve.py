@@ -129,15 +129,27 @@ def normal_equations(graph, values) -> tuple[np.ndarray, np.ndarray, float, int,
 def dense_marginals(graph, values, keys, what: str) -> dict[int, np.ndarray]:
     """Marginal covariances from the dense, column-equilibrated information matrix (eigen-decomposition):
     units and weak priors do not make it singular, only a direction the data and priors leave free does."""
+    covariance, offsets = _dense_covariance(graph, values, what)
+    tangent = values.zeroVectors()
+    return {k: covariance[offsets[k]:offsets[k] + tangent.at(k).size, offsets[k]:offsets[k] + tangent.at(k).size]
+            for k in keys}
+
+
+def dense_joint_covariance(graph, values, keys, what: str) -> np.ndarray:
+    """The joint covariance of ``keys`` (in that order, blocks stacked) as :func:`dense_marginals` computes it."""
+    covariance, offsets = _dense_covariance(graph, values, what)
+    tangent = values.zeroVectors()
+    index = np.concatenate([np.arange(offsets[k], offsets[k] + tangent.at(k).size) for k in keys])
+    return covariance[np.ix_(index, index)]
+
+
+def _dense_covariance(graph, values, what: str) -> tuple[np.ndarray, dict[int, int]]:
     A, _, offsets = dense_jacobian(graph, values)
     scale = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     eigenvalues, vectors = np.linalg.eigh((A / scale).T @ (A / scale))
     if eigenvalues.min() <= 1e-13 * eigenvalues.max():
         raise DegenerateDataError(f"the data do not determine {what} (singular information matrix)")
-    covariance = (vectors / eigenvalues) @ vectors.T / np.outer(scale, scale)
-    tangent = values.zeroVectors()
-    return {k: covariance[offsets[k]:offsets[k] + tangent.at(k).size, offsets[k]:offsets[k] + tangent.at(k).size]
-            for k in keys}
+    return (vectors / eigenvalues) @ vectors.T / np.outer(scale, scale), offsets
 
 
 def lag_stamp_s(t_s: float, step_s: float) -> float:

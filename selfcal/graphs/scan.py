@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 
 from selfcal.factors import scan as fs
-from selfcal.core.solve import DegenerateDataError, dense_marginals, optimize
+from selfcal.core.solve import DegenerateDataError, dense_joint_covariance, optimize
 from selfcal.models import scan as ms
 from selfcal.core.sphere import SphereNotFoundError, fit_sphere
 
@@ -98,6 +98,9 @@ class ScanSolution:
     graph: gtsam.NonlinearFactorGraph | None = None
     seconds: float = 0.0
     history: list = field(default_factory=list)  # online: (time s, theta) after each sphere
+    #: joint covariance of the 15 terms (physical units) and all sphere centres (m), ``15 + 3 S`` square, NaN
+    #: rows for a sphere without points: what the predicted accuracy of points and distances comes from
+    terms_centers_cov: np.ndarray | None = None
 
     def extension_value(self, name: str) -> np.ndarray:
         return self.extensions[name][0] if name in self.extensions else np.zeros(EXT_DIM[name])
@@ -213,13 +216,14 @@ def _solution(problem, model, graph, values, seconds, covariance=True) -> ScanSo
         # the same information with the poses eliminated (the jitter folded into each clock's covariance): tens
         # of unknowns, solved densely with equilibration.  gtsam.Marginals on the full graph agrees but takes
         # seconds (the error terms join every pose into one root clique) and its Cholesky can refuse the graph
-        small, _ = build_collapsed(problem, model)
-        reduced = gtsam.Values()
-        for k in keys:
-            reduced.insert(k, values.atVector(k))
-        cov = dense_marginals(small, reduced, keys, "the INS error terms and sphere centres")
+        joint = covariance_at(problem, model, values, keys)
     else:
-        cov = {k: np.full((values.atVector(k).size,) * 2, np.nan) for k in keys}
+        joint = np.full((sum(values.atVector(k).size for k in keys),) * 2, np.nan)
+    cov, start = {}, 0
+    for k in keys:
+        n = values.atVector(k).size
+        cov[k] = joint[start:start + n, start:start + n]
+        start += n
     S = len(problem.centers0)
     centers = np.full((S, 3), np.nan)
     centers_cov = np.full((S, 3, 3), np.nan)
@@ -232,7 +236,24 @@ def _solution(problem, model, graph, values, seconds, covariance=True) -> ScanSo
         k = EXT_KEYS[n]
         sc = EXTENSION_SCALE[n]
         ext[n] = (values.atVector(k) * sc, cov[k] * sc**2)
-    return ScanSolution(theta, cov[THETA] * np.outer(s, s), centers, centers_cov, ext, values, graph, seconds)
+    # [theta (physical), every centre]: the joint block, rescaled; spheres without points stay NaN
+    n_tc = ms.N_TERMS + 3 * len(spheres)
+    index = np.r_[np.arange(ms.N_TERMS), ms.N_TERMS + 3 * np.repeat(spheres, 3) + np.tile(np.arange(3), len(spheres))]
+    unit = np.r_[s, np.ones(3 * len(spheres))]
+    terms_centers = np.full((ms.N_TERMS + 3 * S,) * 2, np.nan)
+    terms_centers[np.ix_(index, index)] = joint[:n_tc, :n_tc] * np.outer(unit, unit)
+    return ScanSolution(theta, cov[THETA] * np.outer(s, s), centers, centers_cov, ext, values, graph, seconds,
+                        terms_centers_cov=terms_centers)
+
+
+def covariance_at(problem: ScanProblem, model: ScanModel, values: gtsam.Values, keys) -> np.ndarray:
+    """Joint covariance of ``keys`` (graph units) from the collapsed graph linearised at ``values``: the
+    posterior of a solved scan, or, at the true values of a planned scan, its linear covariance analysis."""
+    small, _ = build_collapsed(problem, model)
+    reduced = gtsam.Values()
+    for k in keys:
+        reduced.insert(k, values.atVector(k))
+    return dense_joint_covariance(small, reduced, keys, "the INS error terms and sphere centres")
 
 
 def solve_batch(problem: ScanProblem, model: ScanModel = ScanModel(), covariance: bool = True) -> ScanSolution:

@@ -22,7 +22,8 @@ from selfcal.core.errors import SelfcalError
 log = logging.getLogger(__name__)
 
 __all__ = ["PointCloudError", "LoadedCloud", "points_of", "cloud_from_points", "read_point_cloud",
-           "write_point_cloud", "point_cloud_bytes", "read_triangle_mesh", "write_triangle_mesh"]
+           "write_point_cloud", "read_point_attribute", "point_cloud_bytes", "read_triangle_mesh",
+           "write_triangle_mesh"]
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off", ".gltf", ".glb")
@@ -138,12 +139,14 @@ def read_point_cloud(path, drop_nonfinite: bool = False) -> LoadedCloud:
     return LoadedCloud(cloud=cloud, path=path, n_read=n_read, n_nonfinite=n_bad)
 
 
-def write_point_cloud(path, cloud, binary: bool = True) -> Path:
+def write_point_cloud(path, cloud, binary: bool = True, attributes: dict | None = None) -> Path:
     """Write a cloud (open3d cloud or (N, 3) array) atomically; the format follows the suffix (.ply, .pcd).
 
     open3d writes to a temporary name in the destination folder (same suffix, so the format is kept), which
     is then renamed: a failed write leaves no half file.  PLY keeps float64 coordinates; open3d's PCD writer
     stores float32 (2^-24 relative: 6 mm at 100 km survey coordinates), so write PLY for metrology.
+    ``attributes``: per-point scalars ``{name: (N,) array}`` written as PLY vertex properties (float32, through
+    open3d's tensor cloud; other readers skip properties they do not know); PLY only.
     """
     path = Path(path)
     if not isinstance(cloud, o3d.geometry.PointCloud):
@@ -152,10 +155,47 @@ def write_point_cloud(path, cloud, binary: bool = True) -> Path:
         raise PointCloudError(f"{path}: refusing to write an empty point cloud")
     if path.suffix.lower() not in (".ply", ".pcd", ".xyz", ".pts"):
         raise PointCloudError(f"{path}: unknown point cloud format for writing (.ply, .pcd, .xyz, .pts)")
+    if attributes:
+        return _write_with_attributes(path, cloud, attributes, binary)
     with atomic_file(path) as tmp:
         if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=not binary):
             raise PointCloudError(f"{path}: open3d could not write the point cloud")
     return path
+
+
+def _write_with_attributes(path: Path, cloud: o3d.geometry.PointCloud, attributes: dict, binary: bool) -> Path:
+    if path.suffix.lower() != ".ply":
+        raise PointCloudError(f"{path}: per-point properties ({', '.join(attributes)}) are written to .ply only")
+    n = len(cloud.points)
+    tensor = o3d.t.geometry.PointCloud(o3d.core.Tensor(points_of(cloud)))
+    if cloud.has_colors():
+        tensor.point.colors = o3d.core.Tensor(np.asarray(cloud.colors))
+    if cloud.has_normals():
+        tensor.point.normals = o3d.core.Tensor(np.asarray(cloud.normals))
+    for name, values in attributes.items():
+        values = np.asarray(values, dtype=np.float32).reshape(-1, 1)
+        if len(values) != n:
+            raise PointCloudError(f"{path}: property {name!r} has {len(values)} values for {n} points")
+        tensor.point[name] = o3d.core.Tensor(values)
+    with atomic_file(path) as tmp:
+        if not o3d.t.io.write_point_cloud(str(tmp), tensor, write_ascii=not binary):
+            raise PointCloudError(f"{path}: open3d could not write the point cloud")
+    return path
+
+
+def read_point_attribute(path, name: str, drop_nonfinite: bool = True) -> np.ndarray | None:
+    """The per-point property ``name`` (N,) of a PLY file (None if the file has none), for the points that
+    :func:`read_point_cloud` keeps (non-finite points dropped with ``drop_nonfinite``): the same order."""
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        return None
+    tensor = o3d.t.io.read_point_cloud(str(path))
+    if name not in tensor.point:
+        return None
+    values = tensor.point[name].numpy().reshape(-1).astype(float)
+    if drop_nonfinite:
+        values = values[np.isfinite(tensor.point.positions.numpy()).all(axis=1)]
+    return values
 
 
 def point_cloud_bytes(points_m, suffix: str = ".ply") -> bytes:

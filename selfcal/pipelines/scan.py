@@ -312,6 +312,10 @@ class ScanEstimate:
     problem: gs.ScanProblem | None = None
     solution: gs.ScanSolution | None = None
     stages_s: dict = field(default_factory=dict)  # stage -> (wall s, CPU s of the process)
+    #: predicted 1-sigma of every corrected point along its worst direction, m (:func:`predicted_point_sigmas`)
+    point_sigma_m: np.ndarray | None = None
+    #: every pair of found spheres: (i, j, distance m, predicted 1-sigma m) (:func:`sphere_distances`)
+    distances: list = field(default_factory=list)
 
     def summary(self) -> str:
         s = [f"{len(self.points_W)} points, {len(self.centers)} spheres ({self.n_b_points} points on "
@@ -328,7 +332,15 @@ class ScanEstimate:
                             for c, C in zip(self.centers, self.centers_cov)],
                 "sphere_residual_rms_m": self.sphere_rms_m, "points": int(len(self.points_W)),
                 "set_b_points": self.n_b_points, "set_b_clocks": self.n_b_clocks, "seconds": self.seconds,
-                "mode": "online" if self.online else "batch"}
+                "mode": "online" if self.online else "batch", **self._predicted()}
+
+    def _predicted(self) -> dict:
+        out = {"sphere_distances": [{"between": [int(i), int(j)], "distance_m": float(d), "sigma_m": float(s)}
+                                    for i, j, d, s in self.distances]}
+        if self.point_sigma_m is not None and len(self.point_sigma_m):
+            q = np.percentile(self.point_sigma_m, [50, 95, 100])
+            out["point_sigma_m"] = {"median": float(q[0]), "p95": float(q[1]), "max": float(q[2])}
+        return out
 
 
 def solve_scan(data: ScanData, problem: gs.ScanProblem, model: gs.ScanModel = gs.ScanModel(), online: bool = False,
@@ -391,10 +403,44 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
     P, clock = data.world_points(R, r)
     res = np.concatenate(gs.sphere_residuals(problem, solution.values, model))
     lap("correction of all points")
+    progress("predicted accuracy")
+    sigma = predicted_point_sigmas(problem, solution, R, r, P, clock)
+    lap("predicted accuracy")
     return ScanEstimate(P, clock, theta, np.sqrt(np.diag(solution.theta_cov)), solution.centers,
                         solution.centers_cov, float(np.sqrt(np.mean(res**2))),
                         sum(len(o.vision_p) for o in problem.observations), len(problem.b_clocks()),
-                        time.perf_counter() - start, online, solution.extensions, problem, solution, stages)
+                        time.perf_counter() - start, online, solution.extensions, problem, solution, stages,
+                        sigma, sphere_distances(solution))
+
+
+def predicted_point_sigmas(problem: gs.ScanProblem, solution: gs.ScanSolution, R, r, points_W, clock) -> np.ndarray:
+    """Predicted 1-sigma (N,) of every corrected point (m, worst direction) relative to the scan as a rigid
+    whole: the error terms' posterior without its rigid part (the INS's initial position and heading, which no
+    sphere of unknown position sees: :func:`selfcal.models.scan.shape_covariance`) and the INS jitter, through
+    each clock's correction (:func:`selfcal.models.scan.point_error_sigmas`).
+
+    The point's own triangulation noise is not in it (white, per point: every fit averages it), nor the
+    uncertainty of estimated extensions (scale factors, clock offset): the base model's 15 terms only.
+    """
+    clocks = np.arange(len(problem.clock_t_s))
+    R_ins, r_ins, Phi, _ = gs.clock_inputs(problem, clocks)
+    _, _, J = ms.corrected_pose(R_ins, r_ins, Phi[:, :, :ms.N_TERMS], solution.theta, with_jacobian=True)
+    shape = ms.shape_covariance(solution.theta_cov, ms.rigid_gauge(problem.ins_v[0]))
+    pose_cov = ms.corrected_pose_covariance(J, shape, problem.jitter_sigmas)
+    return ms.point_error_sigmas(R, r, pose_cov, points_W, clock)
+
+
+def sphere_distances(solution: gs.ScanSolution) -> list[tuple[int, int, float, float]]:
+    """Every pair of estimated sphere centres: ``(i, j, distance m, predicted 1-sigma m)`` from the joint
+    posterior of the centres (:func:`selfcal.models.scan.distance_sigmas`)."""
+    if solution.terms_centers_cov is None:
+        return []
+    found = np.flatnonzero(np.isfinite(solution.centers).all(axis=1))
+    pairs = np.array([(i, j) for k, i in enumerate(found) for j in found[k + 1:]], dtype=int).reshape(-1, 2)
+    if not len(pairs):
+        return []
+    d, sigma = ms.distance_sigmas(solution.centers, solution.terms_centers_cov[ms.N_TERMS:, ms.N_TERMS:], pairs)
+    return [(int(i), int(j), float(a), float(b)) for (i, j), a, b in zip(pairs, d, sigma)]
 
 
 def inertial_only_points(recording: Recording) -> np.ndarray:
@@ -408,3 +454,139 @@ def audit_system(recording: Recording, base: str = "error15", sensors: list[str]
     """The audit's view of a scan recording: the 15 INS error terms and sphere centres as the base model."""
     from selfcal.audit.scan import ScanAudit
     return ScanAudit(scan_problem(read_scan(recording)))
+
+
+# ------------------------------------------------------------------------------------------------ planning
+
+@dataclass
+class ScanPlanCase:
+    """The predicted accuracy of one sphere layout (linear covariance analysis, no measurement)."""
+
+    n_spheres: int
+    spacing_m: float
+    distance_sigmas_m: np.ndarray  # every pair of spheres, m
+    predicted_rms_m: float  # sqrt(mean sigma^2) over the pairs: the sphere-spacing RMS to expect
+    worst_sigma_m: float
+    bound_m: float  # worst_sigma x the two-sided normal quantile of the confidence
+    meets: bool
+
+
+@dataclass
+class ScanPlan:
+    """``selfcal plan scan``: the largest sphere spacing whose predicted distance errors meet the tolerance."""
+
+    length_m: float
+    speed_m_s: float
+    tolerance_m: float
+    confidence: float
+    cases: list[ScanPlanCase]
+
+    @property
+    def chosen(self) -> ScanPlanCase | None:
+        """The layout with the fewest spheres (largest spacing) found to meet the tolerance; None if none."""
+        return next((c for c in self.cases if c.meets), None)
+
+    def to_dict(self) -> dict:
+        case = self.chosen
+        return {"length_m": self.length_m, "speed_m_s": self.speed_m_s, "tolerance_m": self.tolerance_m,
+                "confidence": self.confidence, "feasible": case is not None,
+                "largest_spacing_m": None if case is None else case.spacing_m,
+                "spheres": None if case is None else case.n_spheres,
+                "cases": [{"spheres": c.n_spheres, "spacing_m": c.spacing_m, "predicted_rms_m": c.predicted_rms_m,
+                           "worst_sigma_m": c.worst_sigma_m, "bound_m": c.bound_m, "meets": c.meets}
+                          for c in self.cases]}
+
+
+def planned_problem(scenario, prior_sigmas, jitter_sigmas, seed: int = 0,
+                    detection: DetectionOptions = DetectionOptions()) -> gs.ScanProblem:
+    """The graph's input for a scan not yet made: the noise-free sphere profiles of the simulated sensor along
+    the nominal path (:func:`selfcal.sim.scan.simulate_scan` with ``spheres_only``), an error-free INS on it,
+    and the radial sigmas the stereo geometry gives each point, as :func:`detect_set_b` would assign them."""
+    from selfcal.sim.scan import simulate_scan
+    # zero sigmas rather than fixed zero terms: the random draws happen as in a simulated scan of the same seed,
+    # so the spheres stand where that scan has them
+    exact = replace(scenario, pixel_sigma=0.0, ins_jitter_m=0.0, ins_jitter_rad=0.0, error_terms=None,
+                    error_sigmas=np.zeros(ms.N_TERMS))
+    sim = simulate_scan(exact, seed=seed, spheres_only=True)
+    t = sim.ins_t_s
+    R_c, r_c = sim.true_R, sim.true_r
+    observations = []
+    cos_max = np.cos(np.radians(detection.max_incidence_deg))
+    for m, (p_V, label) in enumerate(zip(sim.points_V, sim.sphere_label)):
+        for j in np.unique(label[label >= 0]):
+            q = p_V[label == j]
+            p_W = ms.world_points(R_c[m], r_c[m], sim.imu_R_vision, sim.imu_t_vision, q)
+            u = (p_W - sim.sphere_centers[j]) / np.linalg.norm(p_W - sim.sphere_centers[j], axis=1, keepdims=True)
+            ray = (q / np.linalg.norm(q, axis=1, keepdims=True)) @ (R_c[m] @ sim.imu_R_vision).T
+            keep = np.abs(np.einsum("ij,ij->i", u, ray)) >= cos_max
+            if keep.sum() < 2:
+                continue
+            cov = ms.stereo_point_covariance(q[keep], (sim.left, sim.right), scenario.pixel_sigma)
+            sig = ms.radial_sigmas(q[keep], sim.imu_R_vision, R_c[m], sim.sphere_centers[j], p_W[keep], cov)
+            observations.append(gs.SphereObservation(m, int(j), q[keep], np.maximum(sig, 1e-5)))
+    sens = ms.error_sensitivity(t, sim.ins_R, sim.ins_accel, sim.ins_gyro)
+    return gs.ScanProblem(t, sim.ins_R, sim.ins_r, sim.ins_v, sim.ins_gyro, sens, sim.clock_stamp_s - t[0],
+                          observations, sim.sphere_centers, scenario.sphere_radius_m, sim.imu_R_vision,
+                          sim.imu_t_vision, np.asarray(prior_sigmas, float), np.asarray(jitter_sigmas, float))
+
+
+def predicted_layout(problem: gs.ScanProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Linear covariance analysis of a planned scan: the graph linearised at the truth (error terms zero,
+    centres true), its joint covariance of the centres, every pair's distance sigma.  Returns (pairs, sigmas)."""
+    import gtsam
+    values = gtsam.Values()
+    values.insert(gs.THETA, np.zeros(ms.N_TERMS))
+    keys = [gs.THETA] + [gs.O_KEY(j) for j in range(len(problem.centers0))]
+    for j, c in enumerate(problem.centers0):
+        values.insert(gs.O_KEY(j), np.asarray(c, float))
+    joint = gs.covariance_at(problem, gs.ScanModel(), values, keys)
+    pairs = np.array(np.triu_indices(len(problem.centers0), 1)).T
+    _, sigma = ms.distance_sigmas(problem.centers0, joint[ms.N_TERMS:, ms.N_TERMS:], pairs)
+    return pairs, sigma
+
+
+def plan_scan(length_m: float, speed_m_s: float, tolerance_m: float, prior_sigmas=None, jitter_sigmas=None,
+              confidence: float = 0.95, seed: int = 0, max_spheres: int | None = None, progress=quiet) -> ScanPlan:
+    """The largest sphere spacing along a straight scan of ``length_m`` at ``speed_m_s`` whose every sphere
+    distance has a predicted error bound (``confidence``, two-sided normal) within ``tolerance_m``.
+
+    Layouts as the simulator places them (spheres from 1.5 m after the start to 1.5 m before the end, evenly, at
+    random heights and ranges in the field of view, ``seed``); the number of spheres is doubled from 2 until a
+    layout meets the tolerance, then bisected (more spheres: shorter spacing, more information; a layout's random
+    placement makes this only nearly monotone, so the answer is the largest spacing found to meet it).
+    ``prior_sigmas`` (15) and ``jitter_sigmas`` (6: rad x3, m x3) describe the INS (default: the simulator's).
+    No measurement and no Monte Carlo: the covariance of the graph linearised at the planned truth
+    (:func:`predicted_layout`).
+    """
+    from scipy import stats
+
+    from selfcal.sim.scan import ScanScenario
+    if length_m <= 3.5 or speed_m_s <= 0 or tolerance_m <= 0 or not 0 < confidence < 1:
+        raise DegenerateDataError("plan: need a length over 3.5 m (spheres stand 1.5 m inside each end), a positive "
+                                  "speed and tolerance, a confidence between 0 and 1")
+    prior = ms.DEFAULT_PRIOR_SIGMAS if prior_sigmas is None else np.asarray(prior_sigmas, float)
+    base = ScanScenario(length_m=length_m, speed_m_s=speed_m_s, speed_change_m_s=0.5 * speed_m_s)
+    jitter = (np.r_[np.full(3, base.ins_jitter_rad), np.full(3, base.ins_jitter_m)] if jitter_sigmas is None
+              else np.asarray(jitter_sigmas, float))
+    z = float(stats.norm.ppf(0.5 + confidence / 2))
+    n_max = max_spheres or int((length_m - 3.0) / (4 * base.sphere_radius_m)) + 1  # spheres 2 diameters apart
+    cases: dict[int, ScanPlanCase] = {}
+
+    def case(n: int) -> ScanPlanCase:
+        if n not in cases:
+            progress(f"{n} spheres")
+            problem = planned_problem(replace(base, n_spheres=n, error_sigmas=prior), prior, jitter, seed)
+            _, sigma = predicted_layout(problem)
+            worst = float(sigma.max())
+            cases[n] = ScanPlanCase(n, (length_m - 3.0) / (n - 1), sigma, float(np.sqrt(np.mean(sigma**2))), worst,
+                                    z * worst, z * worst <= tolerance_m)
+        return cases[n]
+
+    lo, hi = 1, 2
+    while not case(hi).meets and hi < n_max:
+        lo, hi = hi, min(2 * hi, n_max)
+    if case(hi).meets:
+        while hi - lo > 1:  # lo fails (or is 1), hi meets
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if case(mid).meets else (mid, hi)
+    return ScanPlan(length_m, speed_m_s, tolerance_m, confidence, [cases[n] for n in sorted(cases)])

@@ -226,14 +226,19 @@ class _Scene:
     """Ray casting against the tunnel mesh (open3d) and the spheres (analytic)."""
 
     def __init__(self, mesh, centers, radius):
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        self.scene = None
+        if mesh is not None:  # None: the spheres alone
+            self.scene = o3d.t.geometry.RaycastingScene()
+            self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         self.centers, self.radius = np.asarray(centers, float), float(radius)
 
     def cast(self, origins, dirs):
         """Distance along unit ``dirs`` to the first hit (inf: none) and what was hit (-1 tunnel, j sphere)."""
-        rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
-        t_mesh = self.scene.cast_rays(rays)["t_hit"].numpy().astype(float)
+        if self.scene is None:
+            t_mesh = np.full(len(dirs), np.inf)
+        else:
+            rays = o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32))
+            t_mesh = self.scene.cast_rays(rays)["t_hit"].numpy().astype(float)
         label = np.full(len(dirs), -1)
         t = t_mesh.copy()
         for j, c in enumerate(self.centers):
@@ -270,8 +275,13 @@ def _place_spheres(sc: ScanScenario, rng, imu_R_vision, imu_t_vision) -> np.ndar
     return np.array(centers)
 
 
-def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0) -> ScanSimulation:
-    """Simulate a scan (see the module docstring); everything random comes from ``seed``."""
+def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0, spheres_only: bool = False) -> ScanSimulation:
+    """Simulate a scan (see the module docstring); everything random comes from ``seed``.
+
+    ``spheres_only``: the spheres without the tunnel (no wall hits, no occlusion by the walls), and only the
+    clocks whose scan plane cuts a sphere are cast (the others hold no point): the sphere profiles a plan's
+    covariance analysis needs, in a fraction of the time.
+    """
     sc = scenario or ScanScenario()
     rng = np.random.default_rng(seed)
     h = 1.0 / sc.ins_rate_hz
@@ -306,7 +316,7 @@ def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0) -> ScanSi
     centers = _place_spheres(sc, rng, imu_R_vision, imu_t_vision)
     radius_true = sc.sphere_radius_m + sc.sphere_radius_error_m
     mesh = tunnel_mesh(sc, (-5.0, sc.length_m + 5.0))
-    scene = _Scene(mesh, centers, radius_true)
+    scene = _Scene(None if spheres_only else mesh, centers, radius_true)
 
     # clocks: the events happen on the INS grid; the camera stamps them dt earlier (t_ins = t_cam + dt)
     step = int(round(sc.ins_rate_hz / sc.clock_hz))
@@ -329,6 +339,10 @@ def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0) -> ScanSi
         d_W = dir_V @ R_WV.T
         tl, lab = scene.cast(np.broadcast_to(o_W, d_W.shape).copy(), d_W)
         ok = np.isfinite(tl)
+        if not ok.any():  # only without the tunnel: the scan plane cuts no sphere
+            points_V.append(np.zeros((0, 3)))
+            labels.append(np.zeros(0, dtype=int))
+            continue
         X_W = o_W + d_W[ok] * tl[ok][:, None]
         lab = lab[ok]
         X_V = (X_W - o_W) @ R_WV  # exact point in the vision frame

@@ -40,8 +40,9 @@ from selfcal.pipelines.qc.figures import (DeviationResult, PlaneResult, SphereRe
                                           measure_planes, measure_spheres)
 from selfcal.pipelines.qc.spec import QCSpec, QCSpecError, SphereSpec, Tolerances
 
-__all__ = ["QCSpec", "QCSpecError", "Check", "QCResult", "run_qc", "scan_points", "detection_planes",
-           "sphere_checks", "sphere_spacing_checks", "flatness_checks", "deviation_checks"]
+__all__ = ["QCSpec", "QCSpecError", "Check", "QCResult", "PredictionResult", "prediction_check", "run_qc",
+           "scan_points", "detection_planes", "sphere_checks", "sphere_spacing_checks", "flatness_checks",
+           "deviation_checks"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,25 @@ class Check:
 
 
 @dataclass
+class PredictionResult:
+    """The predicted accuracy map a corrected scan carries (per-point 1-sigma, PLY property ``sigma_m``), judged
+    against ``tolerances.point_error_m`` at ``prediction.confidence``."""
+
+    points_m: np.ndarray  # (N, 3) the scan's points (for the map)
+    sigma_m: np.ndarray  # (N,) per point, m
+    z: float  # bound = z sigma (two-sided normal quantile of the confidence)
+    confidence: float
+    tolerance_m: float | None
+    fraction_unvouched: float | None  # points whose bound exceeds the tolerance (None without a tolerance)
+
+    def to_json(self) -> dict:
+        q = np.percentile(self.sigma_m, [50, 95, 100])
+        return {"sigma_median_m": float(q[0]), "sigma_p95_m": float(q[1]), "sigma_max_m": float(q[2]),
+                "confidence": self.confidence, "bound_factor": self.z, "tolerance_m": self.tolerance_m,
+                "fraction_unvouched": self.fraction_unvouched}
+
+
+@dataclass
 class QCResult:
     """Everything ``selfcal qc`` measured; ``verdict`` is pass / fail / incomplete."""
 
@@ -82,11 +102,16 @@ class QCResult:
     warnings: list[str]
     seconds: dict[str, float]
     spec: QCSpec
+    prediction: PredictionResult | None = None
 
     @property
     def verdict(self) -> str:
-        """``fail`` if any check failed; ``incomplete`` if none failed but a toleranced check could not run;
-        ``reported`` if the spec gives no tolerance at all (figures only); ``pass`` otherwise."""
+        """``cannot be vouched for`` if the scan's own predicted accuracy does not meet the point tolerance
+        (whatever the measured figures say: they are not to be trusted); else ``fail`` if any check failed;
+        ``incomplete`` if none failed but a toleranced check could not run; ``reported`` if the spec gives no
+        tolerance at all (figures only); ``pass`` otherwise."""
+        if any(c.passed is False and c.name == VOUCH_CHECK for c in self.checks):
+            return "cannot be vouched for"
         if any(c.passed is False for c in self.checks):
             return "fail"
         if any(c.passed is None and c.tolerance is not None for c in self.checks):
@@ -116,7 +141,8 @@ class QCResult:
                 "planes": [{"name": p.name, "normal": p.normal.tolist(), "offset_m": p.offset_m,
                             "n_points": p.n_points, "flatness_m": p.flatness_m, "rms_m": p.rms_m}
                            for p in self.planes],
-                "deviation": dev, "warnings": self.warnings, "seconds": self.seconds}
+                "deviation": dev, "prediction": None if self.prediction is None else self.prediction.to_json(),
+                "warnings": self.warnings, "seconds": self.seconds}
 
 
 def _check(name, value, tolerance, note="", absolute=True, unit="m") -> Check:
@@ -260,8 +286,36 @@ def deviation_checks(deviation: DeviationResult | None, spec: QCSpec) -> list[Ch
                                         f"{max_distance_m} m (clutter, mounts, or errors)")]
 
 
+VOUCH_CHECK = "points vouched for by the predicted accuracy"
+
+
+def prediction_check(points_m: np.ndarray, sigma_m: np.ndarray | None,
+                     spec: QCSpec) -> tuple[PredictionResult | None, list[Check]]:
+    """The fraction of points whose predicted bound ``z sigma`` exceeds ``tolerances.point_error_m``, checked
+    against ``prediction.max_fraction_unvouched`` (first of all checks: a scan that cannot be vouched for is
+    not judged by its measured figures).  No sigma map: not checked when the spec has a point tolerance."""
+    from scipy import stats
+    tol = spec.tolerances.point_error_m
+    if sigma_m is None:
+        note = "the scan carries no predicted accuracy (PLY property sigma_m, written by 'selfcal smooth scan')"
+        return None, ([] if tol is None else [Check(VOUCH_CHECK, None, spec.prediction.max_fraction_unvouched,
+                                                    None, "fraction", note)])
+    conf = spec.prediction.confidence
+    z = float(stats.norm.ppf(0.5 + conf / 2))
+    fraction = None if tol is None else float(np.mean(z * sigma_m > tol))
+    result = PredictionResult(points_m, np.asarray(sigma_m, float), z, conf, tol, fraction)
+    median, worst = np.median(sigma_m), np.max(sigma_m)
+    if tol is None:
+        return result, [Check("predicted point 1-sigma (max)", float(worst), None, None,
+                              note=f"median {median * 1e3:.3g} mm; no tolerances.point_error_m to judge it")]
+    note = (f"fraction of points whose {conf:.0%} bound ({z:.3g} sigma) exceeds {tol * 1e3:.4g} mm; "
+            f"sigma median {median * 1e3:.3g} mm, max {worst * 1e3:.3g} mm")
+    return result, [Check(VOUCH_CHECK, fraction, spec.prediction.max_fraction_unvouched,
+                          fraction <= spec.prediction.max_fraction_unvouched, "fraction", note)]
+
+
 def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMesh | None = None,
-           reference_name: str | None = None, progress=quiet) -> QCResult:
+           reference_name: str | None = None, progress=quiet, point_sigma_m: np.ndarray | None = None) -> QCResult:
     """Quality control of a scan: every figure the scene supports, checked against the spec's tolerances.
 
     Parameters
@@ -276,6 +330,9 @@ def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMe
         For the report.
     progress : callable
         ``progress(stage)`` as each stage starts (:mod:`selfcal.core.progress`).
+    point_sigma_m : (N,) array, optional
+        The scan's predicted 1-sigma per point (:func:`selfcal.io.pointcloud.read_point_attribute`, ``sigma_m``),
+        judged first (:func:`prediction_check`).
 
     Returns
     -------
@@ -286,6 +343,12 @@ def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMe
     warnings: list[str] = []
     start = time.perf_counter()
     points = scan_points(loaded, warnings)
+    if point_sigma_m is not None and len(point_sigma_m) != len(points):
+        raise PointCloudError(f"{loaded.path}: {len(point_sigma_m)} sigma_m values for {len(points)} points")
+    prediction, checks = prediction_check(points, point_sigma_m, spec)
+    if prediction is not None and prediction.fraction_unvouched:
+        warnings.append(f"{prediction.fraction_unvouched:.1%} of the points cannot be vouched for: their predicted "
+                        f"{prediction.confidence:.0%} bound exceeds {prediction.tolerance_m * 1e3:.4g} mm")
     with _timed(seconds, "downsample_normals", progress):
         det = detection_cloud(loaded.cloud, spec.detection)
     log.info(f"detection cloud: {len(det.points)} of {len(points)} points (voxel {spec.detection.voxel_m} m)")
@@ -294,7 +357,7 @@ def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMe
     with _timed(seconds, "spheres", progress):
         spheres = measure_spheres(points, det, on_plane, spec, warnings)
     log.info(f"{len(spheres)} sphere(s) in {seconds['spheres']:.1f} s")
-    checks = sphere_checks(spheres, spec, warnings) + sphere_spacing_checks(spheres, spec)
+    checks += sphere_checks(spheres, spec, warnings) + sphere_spacing_checks(spheres, spec)
     with _timed(seconds, "planes", progress):
         planes = measure_planes(points, plane_models, spec.planes, warnings)
         checks += flatness_checks(planes, spec)
@@ -304,4 +367,4 @@ def run_qc(loaded: LoadedCloud, spec: QCSpec, reference: o3d.geometry.TriangleMe
     seconds["total"] = time.perf_counter() - start
     return QCResult(scan=str(loaded.path), reference=reference_name, n_points=len(points),
                     n_nonfinite=loaded.n_nonfinite, spheres=spheres, planes=planes, deviation=deviation,
-                    checks=checks, warnings=warnings, seconds=seconds, spec=spec)
+                    checks=checks, warnings=warnings, seconds=seconds, spec=spec, prediction=prediction)

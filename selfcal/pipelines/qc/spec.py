@@ -1,7 +1,7 @@
 """The QC spec of ``selfcal qc``: what to look for in a scan and the tolerances it must meet (YAML).
 
-Sections ``spheres``, ``planes``, ``detection``, ``reference``, ``tolerances`` and ``seed``; every length in
-metres; every key optional (a missing tolerance means the figure is reported, not judged).  The format, with
+Sections ``spheres``, ``planes``, ``detection``, ``reference``, ``tolerances``, ``prediction`` and ``seed``;
+every length in metres; every key optional (a missing tolerance means the figure is reported, not judged).  The format, with
 an example, is documented in ``docs/qc.md``.  Unknown keys are refused (a misspelt tolerance must not
 silently pass a scan).  This module needs neither open3d nor the estimators, so the CLI can import its
 error class cheaply.
@@ -120,6 +120,18 @@ class Tolerances:
     deviation_p95_m: float | None = None
     deviation_max_m: float | None = None
     reference_coverage: float | None = None
+    point_error_m: float | None = None  # a point's error, bound at prediction.confidence (needs a sigma map)
+
+
+@dataclass
+class PredictionSpec:
+    """How the predicted accuracy of a corrected scan (per-point 1-sigma, PLY property ``sigma_m``) is judged
+    (``prediction:``): a point is vouched for when ``z sigma <= tolerances.point_error_m`` with ``z`` the
+    two-sided normal quantile of ``confidence``; the scan when at most ``max_fraction_unvouched`` of its points
+    are not."""
+
+    confidence: float = 0.95
+    max_fraction_unvouched: float = 0.0
 
 
 @dataclass
@@ -131,13 +143,14 @@ class QCSpec:
     detection: DetectionSpec = field(default_factory=DetectionSpec)
     reference: ReferenceSpec = field(default_factory=ReferenceSpec)
     tolerances: Tolerances = field(default_factory=Tolerances)
+    prediction: PredictionSpec = field(default_factory=PredictionSpec)
     seed: int = 0
 
     @classmethod
     def from_dict(cls, data: dict | None, source: str = "spec") -> QCSpec:
         data = dict(data or {})
         sections = {"spheres": SphereSpec, "planes": PlaneSpec, "detection": DetectionSpec,
-                    "reference": ReferenceSpec, "tolerances": Tolerances}
+                    "reference": ReferenceSpec, "tolerances": Tolerances, "prediction": PredictionSpec}
         unknown = set(data) - set(sections) - {"seed"}
         if unknown:
             raise QCSpecError(f"{source}: unknown section(s) {sorted(unknown)}; known: {sorted(sections)}, seed")
@@ -192,6 +205,9 @@ class QCSpec:
         for name, value in asdict(self.tolerances).items():
             if value is not None and not value > 0:
                 raise QCSpecError(f"{source}: tolerances.{name} must be > 0")
+        if not 0 < self.prediction.confidence < 1 or not 0 <= self.prediction.max_fraction_unvouched < 1:
+            raise QCSpecError(f"{source}: prediction.confidence must be in (0, 1) and "
+                              "prediction.max_fraction_unvouched in [0, 1)")
 
 
 def _number(v):
