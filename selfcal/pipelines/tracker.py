@@ -17,8 +17,7 @@ import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import (GAP_FLOOR_S, GAP_PERIODS, accelerometer_tilt_at, inclinometer_problems,
-                                 tracker_problems)
+from selfcal.core.sanity import accelerometer_tilt_at, inclinometer_problems, tracker_problems
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
 from selfcal.io.camera import read_camera
@@ -27,6 +26,11 @@ from selfcal.io.recording import GYRO_COLUMNS, ACCEL_COLUMNS, Recording, Recordi
 log = logging.getLogger(__name__)
 
 MODES = ("batch", "isam2", "fixed-lag")
+# The longest IMU gap the tracker bridges: keyframes are 0.1 s apart, each tied to the next by the IMU; over 0.25 s
+# (two keyframes and a half) a gap leaves keyframes without an inertial link: a 0.32 s clock step moved the smoothed
+# position by 1.7 mm and a 0.56 s one broke the inclinometer's bookkeeping (found by tests/test_fuzz.py).  Tighter
+# than the recording's general rule (1 s), which real loggers' 0.3-0.5 s stalls must pass.
+MAX_IMU_GAP_S = 0.25
 _GYRO, _ACCEL = operator.itemgetter(*GYRO_COLUMNS), operator.itemgetter(*ACCEL_COLUMNS)  # 200 Hz: every us counts
 REQUIRED = {"imu0": GYRO_COLUMNS + ACCEL_COLUMNS, "tracker0": ("x", "y", "z"), "incl0": ("roll", "pitch"),
             "cam0": ("u", "v")}
@@ -75,8 +79,7 @@ class OnlineTracker:
         self.restarts = 0
         self.latency_s: list[float] = []
         self._last_imu_ns: int | None = None
-        # an IMU gap longer than this is data missing: nothing bridges it (the sanity checks' rule)
-        self._gap_ns = int(1e9 * max(GAP_PERIODS / self.noise.imu_rate_hz, GAP_FLOOR_S))
+        self._gap_ns = int(1e9 * MAX_IMU_GAP_S)
 
     def push(self, sensor_name: str, t_ns: int, values: dict[str, float]) -> list[dict]:
         start = time.perf_counter()
@@ -158,6 +161,12 @@ def check_sensors(recording: Recording, gaps_allowed: bool = False) -> None:
     (:meth:`Recording.imu`), tracker positions and inclinometer angles against the IMU (:mod:`selfcal.core.sanity`)."""
     imu = recording.imu("imu0", gaps_allowed)
     t0_ns = int(imu.t_ns[0])
+    gaps = np.diff(imu.t_ns) * 1e-9
+    if not gaps_allowed and gaps.max(initial=0.0) > MAX_IMU_GAP_S:
+        i = int(np.argmax(gaps))
+        raise RecordingError(f"{recording.path}/imu0: {gaps[i]:.3g} s without samples after t = "
+                             f"{(imu.t_ns[i] - t0_ns) * 1e-9:.6g} s: the tracker bridges at most {MAX_IMU_GAP_S:g} s "
+                             "(its keyframes are 0.1 s apart); split the recording at the gap")
     t_imu = (imu.t_ns - t0_ns) * 1e-9
     tr = recording.sensors["tracker0"]
     meta = tr.meta or {}
