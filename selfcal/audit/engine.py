@@ -444,7 +444,7 @@ class _Search:
         self.progress = progress or (lambda message: None)
         self.library_alpha = min(alpha, LIBRARY_ALPHA)
         self.effects = tuple(system.base_effects)
-        self.progress(f"fit the base model ({system.base_model})")
+        self.progress(f"fitting the base model ({system.base_model})")
         self.fit = self.base_fit = system.fit(self.effects)
         self.fits = [self.fit]
         self.progress(f"cross-validating the base model ({system.folds} folds)")
