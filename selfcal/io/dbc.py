@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
-from selfcal.io.streams import COLUMN_UNITS, SENTENCES, Sample, StreamError, StreamStats
+from selfcal.io.streams import COLUMN_UNITS, SENTENCES, Sample, StreamError, StreamStats, bus_messages
 
 DEG = math.pi / 180.0
 
@@ -226,15 +226,8 @@ class CanDbcSource:
         self.stats = decoder.stats
 
     def samples(self, stop: threading.Event | None = None) -> Iterator[Sample]:
-        import can
-        while stop is None or not stop.is_set():
-            try:
-                msg = self.bus.recv(timeout=self.timeout_s)
-            except can.CanError as err:
-                self.stats.bad(f"bus error: {' '.join(str(err).split())}")
-                continue
-            if msg is not None:
-                yield from self.decoder.decode(msg)
+        for msg in bus_messages(self.bus, self.timeout_s, self.stats, stop):
+            yield from self.decoder.decode(msg)
 
     def close(self) -> None:
         self.bus.shutdown()

@@ -369,17 +369,10 @@ class CanInclinometerSource:
 
     def samples(self, stop: threading.Event | None = None) -> Iterator[Sample]:
         """Yield samples until ``stop`` is set."""
-        import can
-        while stop is None or not stop.is_set():
-            try:
-                msg = self.bus.recv(timeout=self.timeout_s)
-            except can.CanError as err:
-                self.stats.bad(f"bus error: {' '.join(str(err).split())}")
-                continue
-            if msg is not None:
-                sample = self.handle(msg)
-                if sample is not None:
-                    yield sample
+        for msg in bus_messages(self.bus, self.timeout_s, self.stats, stop):
+            sample = self.handle(msg)
+            if sample is not None:
+                yield sample
 
     def close(self) -> None:
         self.bus.shutdown()
@@ -586,3 +579,17 @@ def open_stream(serial: list[str] | None = None, can_channel: str | None = None,
                 yield sample
         return OpenStream(only(), sources, stop)
     return OpenStream(merge_live(sources, reorder_window_s, stop, max_samples), sources, stop)
+
+
+def bus_messages(bus, timeout_s: float, stats: StreamStats, stop: threading.Event | None = None):
+    """Frames of a live python-can bus until ``stop`` is set; a bus error is counted and skipped, never fatal
+    (shared by the fixed-layout and the DBC sources)."""
+    import can
+    while stop is None or not stop.is_set():
+        try:
+            msg = bus.recv(timeout=timeout_s)
+        except can.CanError as err:
+            stats.bad(f"bus error: {' '.join(str(err).split())}")
+            continue
+        if msg is not None:
+            yield msg
