@@ -39,6 +39,25 @@ Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func
   inclinometer's gain on the accelerometer's tilt must lie in [0.1, 10]: degrees are 57, mrad 1000, while
   vibration aliased differently into a 10 Hz inclinometer and 1 s accelerometer means moved a clean near-still
   TBM's apparent gain to 0.24.
+
+Speed (a ship's speed log or GPS speed, :func:`speed_problems`), against the accelerometer on the hull:
+
+* the surge the speed shows is what the accelerometer's forward axis feels: ``f_x = dv/dt - g sin(pitch) +
+  lever-arm terms`` (the turn's centripetal ``v r`` is in ``f_y``).  Sample by sample the waves' ``g sin(pitch)``
+  and lever-arm terms (std 0.06-0.12 m/s^2 on the simulated voyages, periods 5-20 s) are as large as the surge
+  (std 0.05-0.08): regressing ``dv/dt`` on ``f_x`` then gives 0.2-0.5 in correct units (errors in the regressor
+  attenuate the slope; with the true pitch removed 0.8-0.94, the rest the lever arm's pitch acceleration).  Both
+  are therefore averaged over the same 60 s windows (the mean of ``dv/dt`` over a window is exactly its speed
+  change over 60 s; three periods of the longest pitch leave a tenth of it), and the window means of ``f_x`` are
+  regressed (with an offset: accelerometer bias, trim) on those of ``dv/dt``: the noise is then in the regressand,
+  where least squares expects it, and the slope ``b`` is 1 in m/s with its sigma from the residuals (a speed in
+  knots gives 1/1.944, km/h 1/3.6, cm/s 1/100).  It is judged only where the voyage holds speed changes enough
+  for ``sigma_b <= 0.04 |b|`` (relative, so that the judgement does not depend on the unit being judged); then
+  ``b`` outside [0.72, 1.39] (the geometric midpoint to knots, both ways) is refused.  In m/s that takes
+  ``|b - 1| / sigma_b >= 0.39 / (0.04 x 1.39) = 7.0`` (7.8 below), a t-statistic with ``n - 2 >= 8`` degrees of
+  freedom: a false refusal probability at most 8e-5 for a 10-minute voyage, 1e-6 for 20 minutes, 7e-8 for 30,
+  if the residuals are independent and normal.  Without speed changes the unit cannot be checked, and the caller
+  says so (a warning, not a refusal).
 """
 from __future__ import annotations
 
@@ -57,6 +76,10 @@ MAX_TRACKER_RANGE_M = 200.0
 TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
 MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
 GAIN_RANGE = (0.1, 10.0)  # units differ by 57 (deg) or 1000 (mrad); aliased vibration moved it to 0.24
+SPEED_WINDOW_S, MIN_SPEED_WINDOWS = 60.0, 10  # three periods of the longest pitch (20 s); t-statistic dof >= 8
+SURGE_SLOPE_RANGE, SURGE_SLOPE_RELATIVE_SIGMA = (0.72, 1.39), 0.04  # 1/sqrt(1.944) either way; judged at sigma <= 4 %
+SPEED_UNITS = ((1.0 / 1.943844, "knots? multiply by 0.514444"), (1.0 / 3.6, "km/h? divide by 3.6"),
+               (0.01, "cm/s? multiply by 0.01"), (1.0 / 2.236936, "mph? multiply by 0.44704"))
 
 
 def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x", "a_y", "a_z"),
@@ -278,3 +301,43 @@ def accelerometer_tilt_at(t_s, t_imu_s, f_B_m_s2) -> np.ndarray:
     f = _window_means(np.asarray(t_imu_s, dtype=float), np.asarray(f_B_m_s2, dtype=float),
                       np.asarray(t_s, dtype=float), TILT_WINDOW_S / 2)
     return np.column_stack(tilt_from_specific_force(f))
+
+
+def speed_problems(t_speed_s, speed, t_imu_s, f_x_m_s2) -> tuple[list[str], str | None]:
+    """The speed (m/s expected) at ``t_speed_s`` against the accelerometer's forward specific force ``f_x_m_s2``
+    at ``t_imu_s`` (one clock, s): one line per problem, and the reason the unit could not be judged (None when
+    it was).  The slope of the 60 s means of ``f_x`` on the speed's mean rate over the same windows (module
+    docstring)."""
+    t_v, v = np.asarray(t_speed_s, dtype=float), np.asarray(speed, dtype=float)
+    ok = np.isfinite(v)
+    t_v, v = t_v[ok], v[ok]
+    t_imu = np.asarray(t_imu_s, dtype=float)
+    start, end = max(t_v[0], t_imu[0]) if t_v.size else 0.0, min(t_v[-1], t_imu[-1]) if t_v.size else 0.0
+    n = int((end - start) // SPEED_WINDOW_S) if t_v.size >= 2 else 0
+    if n < MIN_SPEED_WINDOWS:
+        return [], (f"cannot check the speed's unit: the voyage is shorter than {MIN_SPEED_WINDOWS} windows of "
+                    f"{SPEED_WINDOW_S:g} s")
+    edges = start + SPEED_WINDOW_S * np.arange(n + 1)
+    surge = np.diff(np.interp(edges, t_v, v)) / SPEED_WINDOW_S  # the window's mean dv/dt, exactly
+    c = np.concatenate([[0.0], np.cumsum(np.asarray(f_x_m_s2, dtype=float))])
+    i = np.searchsorted(t_imu, edges)
+    counts = np.diff(i)
+    if np.any(counts == 0):
+        return [], "cannot check the speed's unit: the IMU has windows without samples"
+    f_mean = np.diff(c[i]) / counts
+    sc, fc = surge - surge.mean(), f_mean - f_mean.mean()
+    var = float(sc @ sc)
+    slope = float(sc @ fc) / var if var > 0 else 0.0
+    resid = fc - slope * sc
+    sigma = float(np.sqrt(resid @ resid / (n - 2) / var)) if var > 0 else np.inf
+    if not sigma <= SURGE_SLOPE_RELATIVE_SIGMA * abs(slope):  # relative: the same judgement in any unit
+        return [], (f"cannot check the speed's unit: the voyage holds no speed change the accelerometer tells from "
+                    f"the waves (slope {slope:.3g} +- {sigma:.2g} over {n} windows of {SPEED_WINDOW_S:g} s; a "
+                    f"sigma under {100 * SURGE_SLOPE_RELATIVE_SIGMA:g} % of it needed)")
+    if SURGE_SLOPE_RANGE[0] <= slope <= SURGE_SLOPE_RANGE[1]:
+        return [], None
+    factor, hint = min(SPEED_UNITS, key=lambda u: abs(np.log(max(slope, 1e-12) / u[0])))
+    hint = f"speed in {hint} to get m/s" if 0.9 < slope / factor < 1.1 else "check its unit (m/s expected)"
+    return [f"its speed changes {1.0 / slope if slope else np.inf:.3g} x as fast as the accelerometer's surge "
+            f"(slope of f_x on dv/dt {slope:.3g} +- {sigma:.2g} over {n} windows of {SPEED_WINDOW_S:g} s; 1 "
+            f"expected): {hint}"], None

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from selfcal.core import inertial
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import GAP_FLOOR_S, GAP_PERIODS
+from selfcal.core.sanity import GAP_FLOOR_S, GAP_PERIODS, speed_problems
 from selfcal.graphs.ship import SPEED_RATE_WINDOW_S, ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import ship
@@ -28,24 +28,49 @@ def ship_inputs(recording: Recording, imu_name: str = "imu0") -> ShipInputs:
     surge acceleration (the spline's derivative) carries neither the noise nor a fixed window's lag.
     """
     from scipy.interpolate import make_smoothing_spline
-    data = uniformly_sampled(recording.imu(imu_name))
+    imu = recording.imu(imu_name)
+    check_speed(recording, imu)
+    data = uniformly_sampled(imu)
     speed = speed_rate = None
-    for sensor, column in SPEED_SOURCES:
-        if sensor in recording.sensors and column in recording.sensors[sensor].values:
-            s = recording.sensors[sensor]
-            t_log = (s.t_ns - data.t_ns[0]) * 1e-9
-            t_imu = data.t_s - data.t_s[0]
-            if len(t_log) >= 5:
-                spline = make_smoothing_spline(t_log, s.values[column])
-                speed, speed_rate = spline(t_imu), spline.derivative()(t_imu)
-            else:
-                speed = np.interp(t_imu, t_log, s.values[column])
-            break
+    source = speed_source(recording)
+    if source is not None:
+        s, column = recording.sensors[source[0]], source[1]
+        t_log = (s.t_ns - data.t_ns[0]) * 1e-9
+        t_imu = data.t_s - data.t_s[0]
+        if len(t_log) >= 5:
+            spline = make_smoothing_spline(t_log, s.values[column])
+            speed, speed_rate = spline(t_imu), spline.derivative()(t_imu)
+        else:
+            speed = np.interp(t_imu, t_log, s.values[column])
     meta = data.meta
     return ShipInputs(data.t_s, data.gyro_rad_s, data.accel_m_s2, speed,
                       float(meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
                       float(meta.get("gyroscope_noise_density", 1e-4)),
                       float(meta.get("gyroscope_random_walk", 1e-5)), speed_rate)
+
+
+def speed_source(recording: Recording) -> tuple[str, str] | None:
+    """(sensor, column) of the speed the estimators use: the first of :data:`SPEED_SOURCES` recorded."""
+    return next(((sensor, column) for sensor, column in SPEED_SOURCES
+                 if sensor in recording.sensors and column in recording.sensors[sensor].values), None)
+
+
+def check_speed(recording: Recording, imu) -> None:
+    """Refuse (RecordingError, one line) a speed the accelerometer's surge shows is not in m/s (knots, km/h,
+    cm/s: :func:`selfcal.core.sanity.speed_problems`), of the source the estimators use (:data:`SPEED_SOURCES`);
+    say so in a warning where the voyage holds no speed change to judge it by."""
+    source = speed_source(recording)
+    if source is None:
+        return
+    sensor, column = source
+    s = recording.sensors[sensor]
+    problems, unjudged = speed_problems((s.t_ns - imu.t_ns[0]) * 1e-9, s.values[column],
+                                        (imu.t_ns - imu.t_ns[0]) * 1e-9, imu.accel_m_s2[:, 0])
+    where = f"{recording.path if recording.path is not None else '<recording>'}/{sensor}"
+    if problems:
+        raise RecordingError(f"{where}: {problems[0]}")
+    if unjudged:
+        log.warning("%s: %s", where, unjudged)
 
 
 def uniformly_sampled(data):
@@ -285,7 +310,7 @@ def audit_system(recording: Recording, base: str = "attitude", sensors: list[str
 def check_recording(recording: Recording, imu_name: str = "imu0") -> None:
     """What ``selfcal track --replay`` refuses before it starts: what :func:`smooth_ship` refuses, but a gap (the
     online estimator starts over there)."""
-    recording.imu(imu_name, gaps_allowed=True)
+    check_speed(recording, recording.imu(imu_name, gaps_allowed=True))
 
 
 def online_estimator(meta: dict[str, dict]):
