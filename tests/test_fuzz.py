@@ -11,7 +11,9 @@ The default run draws a bounded number of examples per command (derandomised: th
 Mutation classes (applied to ``imu0``): columns in other units (g, mg, deg/s), a dead (constant) column, a
 placeholder value (1e300), a gap of 1 ms to 10 min, timestamps in us instead of ns, sensor.yaml noise zero,
 negative or text, a recording cut to a few rows, and the identity (which must be accepted and equal the clean
-result).
+result); and a ship's speed log in knots (``speed0``; the identity for recordings without one): the 60 s calm
+voyage holds no speed change to judge the unit by, so it is let through with a warning, and its answer must be
+as good (knots move the calm voyage's attitude by 0.001 deg: its known acceleration is tiny).
 """
 from __future__ import annotations
 
@@ -46,11 +48,19 @@ mutations = st.one_of(
     st.just(("timestamps in us", None)),
     st.tuples(st.just("noise"), st.sampled_from([0.0, -1e-3, "abc"])),
     st.tuples(st.just("truncated"), st.integers(2, 40)),
+    st.just(("speed in knots", None)),
 )
+KNOTS = 1.0 / 0.514444
 
 
 def mutate(rec, mutation):
     kind, arg = mutation
+    if kind == "speed in knots":
+        if "speed0" not in rec.sensors:
+            return rec
+        log = rec.sensors["speed0"]
+        return replace(rec, sensors={**rec.sensors, "speed0": replace(log, values={
+            **log.values, "speed_log": log.values["speed_log"] * KNOTS})})
     s = rec.sensors["imu0"]
     values, t_ns, meta = {c: v.copy() for c, v in s.values.items()}, s.t_ns.copy(), dict(s.meta)
     if kind == "units":
