@@ -208,6 +208,7 @@ class TrackerEstimator:
         self._update(graph, values, [None] * graph.size(), 0)
         self._P_pose = np.diag(PRIOR_POSE_SIGMAS**2)
         self._P_vel = PRIOR_VELOCITY_SIGMA_M_S**2 * np.eye(3)
+        self._P_bias = np.diag([o.initial_accel_bias_sigma**2] * 3 + [o.initial_gyro_bias_sigma**2] * 3)
         self._recursor.reset(self.nav.attitude().matrix(), self._P_pose[:3, :3])
         self._book.add_keyframe(t_ns, values)
 
@@ -235,7 +236,8 @@ class TrackerEstimator:
         nav_k = self._predict()
         values = navstate_values(nav_k, k)
         values.insert(j=B(k), constant_bias=self.bias)
-        P_pose, P_vel = predicted_covariance(self._P_pose, self._P_vel, self.pim)
+        P_pose, P_vel = predicted_covariance(self._P_pose, self._P_vel, self.pim, self._P_bias,
+                                             self.nav.attitude().matrix())
         dt = self.pim.deltaTij()
         self._health.decisions = decisions = []
         if self.options.gating.recursor:
@@ -257,6 +259,7 @@ class TrackerEstimator:
         if self.options.covariance:
             self._P_pose = self._smoother.marginalCovariance(X(k))
             self._P_vel = self._smoother.marginalCovariance(V(k))
+            self._P_bias = self._smoother.marginalCovariance(B(k))
             covariance = pose_covariance_W(pose.rotation().matrix(), self._P_pose)
         else:
             self._P_pose, self._P_vel = P_pose, P_vel
