@@ -56,8 +56,12 @@ Speed (a ship's speed log or GPS speed, :func:`speed_problems`), against the acc
   ``b`` outside [0.72, 1.39] (the geometric midpoint to knots, both ways) is refused.  In m/s that takes
   ``|b - 1| / sigma_b >= 0.39 / (0.04 x 1.39) = 7.0`` (7.8 below), a t-statistic with ``n - 2 >= 8`` degrees of
   freedom: a false refusal probability at most 8e-5 for a 10-minute voyage, 1e-6 for 20 minutes, 7e-8 for 30,
-  if the residuals are independent and normal.  Without speed changes the unit cannot be checked, and the caller
-  says so (a warning, not a refusal).
+  if the residuals are independent and normal; on 40 simulated 30-minute turning voyages (27 judged) the statistic
+  ``(b - 1) / sigma_b`` measured mean -0.02, std 1.09, largest 2.65.  Without speed changes the unit cannot be
+  checked, and the caller says so (a warning, not a refusal): there the speed's own noise, now in the regressor,
+  pulls ``b`` towards 0 (calm voyages at constant speed: ``(b - 1) / sigma_b`` down to -6), which the relative
+  sigma keeps from being judged.  What limits weak accelerations is the accelerometer's bias walk (the simulated
+  MEMS's 2e-4 m/s^3/sqrt(Hz): 6e-3 m/s^2 over 15 minutes): one 10 m/s acceleration over 10 minutes is not judged.
 """
 from __future__ import annotations
 
