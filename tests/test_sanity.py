@@ -421,3 +421,19 @@ def test_clean_tbm_runs_pass_the_tracker_checks_with_and_without_noise(seed):
     scenario = TrackerScenario(duration_s=30.0, seed=seed)
     for noise_seed in (None, 100 + seed):
         check_sensors(scenario.measurements(seed=noise_seed))
+
+
+def test_quadratic_second_derivative_weights_match_savgol():
+    """The tracker check's second-derivative weights against scipy's Savitzky-Golay filter (the oracle) on a
+    random walk, and exact on a parabola: x = 3 t^2 has x'' = 6 everywhere."""
+    from scipy.signal import savgol_filter
+
+    from selfcal.core.sanity import quadratic_second_derivative_weights
+    n, dt = 25, 0.02
+    w = quadratic_second_derivative_weights(n, dt)
+    x = np.random.default_rng(0).normal(size=400).cumsum()
+    ours = np.lib.stride_tricks.sliding_window_view(x, n) @ w
+    scipy_interior = savgol_filter(x, n, 2, deriv=2, delta=dt)[n // 2:-(n // 2)]
+    np.testing.assert_allclose(ours, scipy_interior, rtol=0, atol=1e-9 * np.abs(scipy_interior).max())
+    t = np.arange(n) * dt
+    assert float(3.0 * t**2 @ w) == pytest.approx(6.0, rel=1e-9)

@@ -35,7 +35,8 @@ def stream_arguments(p) -> None:
     sources.add_argument("--max-samples", type=int, help="stop after this many samples")
 
 
-def open_stream(args, max_samples=None):
+def open_stream(args, max_samples=None, recording=None):
+    """The sources of the command line merged; ``recording``: the --replay recording when already read."""
     from selfcal.io.streams import open_stream as open_sources
     if not (args.serial or args.can or args.replay or args.can_log):
         raise UsageError("no source: give --serial PORT[:BAUD][,TYPE=sensor...], --can CHANNEL, --replay REC "
@@ -46,6 +47,7 @@ def open_stream(args, max_samples=None):
         raise UsageError("--dbc decodes CAN frames: give --can CHANNEL or --can-log FILE")
     return open_sources(serial=args.serial, can_channel=args.can, can_interface=args.can_interface,
                         can_node=args.can_node, can_sensor=args.can_sensor, replay_path=args.replay,
+                        replay_recording=recording,
                         realtime=args.realtime, speed=args.speed, max_samples=max_samples, can_log=args.can_log,
                         dbc=args.dbc, dbc_map=args.dbc_map)
 
@@ -100,10 +102,12 @@ def track(args) -> None:
     if not args.out_tum and not args.out_jsonl:
         raise UsageError("nothing to write: give --out-tum POSES.tum and/or --out-jsonl POSES.jsonl")
     if args.replay and not (args.serial or args.can or args.can_log):  # the recording is the whole input
-        check_replay(args.system, args.replay)
+        recording = check_replay(args.system, args.replay)
+    else:
+        recording = None
     meta_from = args.sensors_from or args.replay
     estimator = make_estimator(args.system, sensor_meta(meta_from) if meta_from else {})
-    stream = open_stream(args, max_samples=args.max_samples)
+    stream = open_stream(args, max_samples=args.max_samples, recording=recording)
     try:
         result = run_track(stream.samples, estimator, out_tum=args.out_tum, out_jsonl=args.out_jsonl,
                            append=args.append)

@@ -530,14 +530,14 @@ class _ReplaySource:
 def open_stream(serial: list[str] | None = None, can_channel: str | None = None, can_interface: str = "socketcan",
                 can_node: int = 1, can_sensor: str = "incl0", replay_path=None, realtime: bool = False,
                 speed: float = 1.0, reorder_window_s: float = 0.05, max_samples: int | None = None,
-                can_log=None, dbc=None, dbc_map=None) -> OpenStream:
+                can_log=None, dbc=None, dbc_map=None, replay_recording: Recording | None = None) -> OpenStream:
     """Open every source named on a command line and merge them in timestamp order.
 
     A replay alone is merged exactly (it is already sorted); live sources (and a replay mixed with them) go
     through :func:`merge_live` with its reordering window.  A CAN log (``can_log``, :mod:`selfcal.io.canlog`) is a
     file like a replay: alone or with a replay it is merged exactly, never with live sources.  ``dbc`` and
     ``dbc_map`` decode the CAN frames (live or logged) through a DBC (:mod:`selfcal.io.dbc`) instead of the fixed
-    inclinometer TPDO1.
+    inclinometer TPDO1.  ``replay_recording``: the recording at ``replay_path`` when the caller has read it already.
     """
     from selfcal.io.recording import read_recording
 
@@ -557,7 +557,8 @@ def open_stream(serial: list[str] | None = None, can_channel: str | None = None,
             sources.append(CanInclinometerSource(channel=can_channel, interface=can_interface, node_id=can_node,
                                                  sensor=can_sensor))
         if replay_path is not None:
-            sources.append(_ReplaySource(read_recording(replay_path), realtime and can_log is None, speed))
+            recording = replay_recording if replay_recording is not None else read_recording(replay_path)
+            sources.append(_ReplaySource(recording, realtime and can_log is None, speed))
         if can_log is not None:
             from selfcal.io.canlog import CanLogSource, merge_offline
             from selfcal.io.dbc import dbc_decoder

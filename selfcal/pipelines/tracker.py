@@ -22,6 +22,7 @@ from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, Tracker
                                     batch_smooth)
 from selfcal.io.camera import read_camera
 from selfcal.io.recording import GYRO_COLUMNS, ACCEL_COLUMNS, Recording, RecordingError
+from selfcal.pipelines.track import LatencyHistogram
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +78,7 @@ class OnlineTracker:
         self.estimator = TrackerEstimator(self.noise, options)
         self.ignored = 0
         self.restarts = 0
-        self.latency_s: list[float] = []
+        self.latency_s = LatencyHistogram()  # per keyframe output; bounded: a live run lasts hours
         self._last_imu_ns: int | None = None
         self._gap_ns = int(1e9 * MAX_IMU_GAP_S)
 
@@ -107,7 +108,7 @@ class OnlineTracker:
             for o in out:
                 if o["covariance"] is not None:
                     o["covariance"] = np.asarray(o["covariance"]).tolist()
-            self.latency_s.append(time.perf_counter() - start)
+            self.latency_s.add(time.perf_counter() - start)
         return out
 
     def check(self) -> None:

@@ -19,7 +19,7 @@ from selfcal.graphs.tracker.alignment import Pending, bearing_at_keyframe, navst
 from selfcal.graphs.tracker.bookkeeping import FactorBook
 from selfcal.graphs.tracker.checks import BiasDrift, FrozenOutput, SensorHealth
 from selfcal.graphs.tracker.eigen import EigenDetector, StateRecursor
-from selfcal.graphs.tracker.gate import Gate, innovation, predicted_covariance
+from selfcal.graphs.tracker.gate import Gate, linear_innovation, predicted_covariance
 from selfcal.graphs.tracker.inclinometer import DeferredInclinometer
 from selfcal.graphs.tracker.options import SensorNoise, TrackerOptions
 from selfcal.graphs.tracker.prism import PrismFactors
@@ -280,8 +280,11 @@ class TrackerEstimator:
             elif m.sensor == "cam0":
                 bearing = bearing_at_keyframe(m, nav_k, n.r_C_B, n.R_B_C, n.tracker_W)
                 factor = ft.beam_bearing_factor(self._cam_noise, X(k), bearing, n.r_C_B, n.R_B_C, n.tracker_W)
-                stat, nu = innovation(factor, values, P_pose)
+                linear = factor.linearize(values)  # once: for the gate and, online, as the frozen factor itself
+                stat, nu = linear_innovation(linear, P_pose)
                 if self._gate.decide("cam0", m.t_ns, stat, nu, k):
+                    if self._book.graph_log is None:  # see frozen_jacobian
+                        factor = gtsam.LinearContainerFactor(linear, values)
                     accepted.append((factor, "cam0"))
         self._pending = []
         return accepted

@@ -85,7 +85,12 @@ def predicted_covariance(P_pose: np.ndarray, P_vel: np.ndarray, pim, P_bias: np.
 
 def innovation(factor, values, P_pose: np.ndarray) -> tuple[float, np.ndarray]:
     """(statistic, normalised residual) of a pose factor at the propagated state with pose covariance P."""
-    A, b = factor.linearize(values).jacobian()
+    return linear_innovation(factor.linearize(values), P_pose)
+
+
+def linear_innovation(linear, P_pose: np.ndarray) -> tuple[float, np.ndarray]:
+    """:func:`innovation` of a factor already linearised at the propagated state (a ``JacobianFactor``)."""
+    A, b = linear.jacobian()
     S = A @ P_pose @ A.T
     S.flat[::len(b) + 1] += 1.0  # S = A P A^T + I  (the factor is whitened: its noise is I)
     nu = whiten(S, -b)  # nu = L^-1 r,  r = -b  (normalised residual)
