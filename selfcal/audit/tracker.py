@@ -223,7 +223,8 @@ class TrackerAudit:
         samples' line-of-sight unit vectors ``m['los']``.
 
         Range, azimuth and elevation are those of the base fit's prism at the keyframe seen from the tracker
-        (``tracker_W``); roll, pitch and yaw the base fit's attitude there (yaw unwrapped over the run); speed the
+        (``tracker_W``); roll, pitch and yaw the base fit's attitude there (yaw unwrapped over the run; for the
+        inclinometer's rows roll and pitch are its readings); speed the
         base fit's velocity's; vibration the disturbance's standard deviation the online pass measured (rad,
         interpolated in time to tracker samples); time that of each sample.
         """
@@ -262,6 +263,10 @@ class TrackerAudit:
                             **aux(t)}
         for m, t in zip(self.incl, t_incl):
             _, state = at_keyframe(m["k"], 1)
+            # the inclinometer's roll and pitch drivers are its own readings: a reading error is a function of what
+            # it reads (a cross-axis coupling: roll picks up k pitch), while the fit's attitude has already taken
+            # part of it (its noise, 1e-4 rad against tilts of 1e-2, does not regress on itself measurably)
+            state.update(roll=m["z"][:1], pitch=m["z"][1:])
             m["drivers"] = {"time": np.array([t]), **state, "vibration": np.array([m["vibration"]]),
                             **aux(np.array([t]))}
         full = self._rows(None)
