@@ -122,6 +122,9 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
     lead = np.zeros(n) if lead_s is None else np.asarray(lead_s, dtype=float)
     v0 = np.zeros(3) if v_start is None else np.asarray(v_start, dtype=float)
     frac = None if velocity_keys is None else np.broadcast_to(np.asarray(velocity_fraction, dtype=float), (n,))
+    # the constant parts of the Jacobian blocks, built once (the audit linearises each block many times)
+    lead_block = -np.kron(lead[:, None], np.eye(3))
+    weight_blocks = None if frac is None else [np.kron(w[:, None], np.eye(3)) for w in (1.0 - frac, frac)]
 
     def error(this, values, H):
         pose = values.atPose3(pose_key)
@@ -144,10 +147,10 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
             if offset_key is not None:
                 blocks[offset_key] = -np.broadcast_to(vi, (n, 3)).reshape(-1, 1)
             if start_velocity_key is not None:
-                blocks[start_velocity_key] = -np.kron(lead[:, None], np.eye(3))
+                blocks[start_velocity_key] = lead_block
             if velocity_keys is not None:  # one key may also be the start velocity: the blocks add up
-                for key, weight in zip(velocity_keys, (1.0 - frac, frac)):
-                    block = -dt * np.kron(weight[:, None], np.eye(3))
+                for key, weight in zip(velocity_keys, weight_blocks):
+                    block = -dt * weight
                     blocks[key] = blocks[key] + block if key in blocks else block
             blocks.update(terms)
             for i, key in enumerate(keys):
