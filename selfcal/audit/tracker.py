@@ -214,6 +214,7 @@ class TrackerAudit:
         self.channel_units = {name: unit for name, (_, _, unit) in (channels or {}).items()}
         self._driver_values(channels or {})
         self._keys_of = {target: library.TermKeys(t.symbol) for target, t in TERM_TARGETS.items()}
+        self._inflations: dict = {}  # residual_correlation per model
 
     # --- the generic term library ----------------------------------------------------------------------------
 
@@ -604,8 +605,15 @@ class TrackerAudit:
         by it.  Under the null hypothesis the two residual sets coincide.  The engine applies one inflation to
         every candidate: the largest of the families', so no candidate's evidence is overstated."""
         everything = tuple(fit.effects) + tuple(c for c in self.candidates() if c not in fit.effects)
-        full = self.fit(everything, fit.context["fold"]) if len(everything) > len(fit.effects) else fit
-        return max((self._inflation(family) for family in full.families), default=1.0)
+        if len(everything) == len(fit.effects):
+            return max((self._inflation(family) for family in fit.families), default=1.0)
+        # the engine asks once per candidate of a step, always about the same model: a fit is deterministic in its
+        # effects and fold, so the refit is done once per model
+        key = (tuple(c.key for c in everything), fit.context["fold"])
+        if key not in self._inflations:
+            full = self.fit(everything, fit.context["fold"])
+            self._inflations[key] = max((self._inflation(family) for family in full.families), default=1.0)
+        return self._inflations[key]
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """Value and 1-sigma: marginal covariance scaled by the fit's variance factor and by the time
