@@ -40,6 +40,14 @@ therefore solves the linearised graph with and without the candidate sparsely (G
 profiles the states out exactly, and hands the engine a graph of the candidate's variables alone with the
 same residual sums and degrees of freedom: the same F statistic at a fraction of the cost.
 
+Generic terms (:mod:`selfcal.audit.terms`, effect ``unlisted``): corrections applied to the measurement inside
+its factor, ``e += G c``: on ``tracker0/position`` a distance error ``k phi(x)`` along each sample's line of sight
+from ``tracker_W`` (m), on ``incl0/tilt`` a reading error ``k phi(x)`` in roll and pitch (rad).  Drivers: time,
+range, azimuth, elevation, roll, pitch, yaw, speed, vibration (:meth:`TrackerAudit._driver_values`) and the
+recording's auxiliary columns.  The library is scored in information form (``information_form``,
+:meth:`TrackerAudit.extend_all`): one linearisation and one factorisation of the base normal equations per
+search step for every term at once.
+
 Observability (what a run can show): the inclinometer's roll bias trades against the accelerometer's y bias
 (both body-fixed), so only the camera's beam elevation pins the pitch and the accelerometer bias prior the
 roll; the prism lever arm shows through the beam camera (its height against the inclinometer's pitch) and,
