@@ -6,7 +6,6 @@ right driver and form, size it within 3 of its own sigmas, and never name a look
 """
 import gtsam
 import numpy as np
-import pytest
 
 from selfcal.audit.engine import run_audit
 from selfcal.audit.tracker import TrackerAudit
@@ -15,7 +14,7 @@ from selfcal.pipelines.tracker import auxiliary_channels, estimator_for_audit
 from selfcal.sim.tracker import TrackerScenario
 from factor_checks import assert_factor_jacobians
 
-X, V = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V
+X = gtsam.symbol_shorthand.X
 CALIBRATION_RUN = dict(duration_s=20.0, seed=3, burst_rate_per_min=6.0, steer_angle_deg=(1.0, 2.0),
                        steer_period_s=(20.0, 40.0))
 
