@@ -120,3 +120,28 @@ def test_audit_does_not_call_an_inclinometer_cross_coupling_a_prism_lever_arm():
     assert (f["effect"], f["driver"], f["form"], f["target"]) == ("unlisted", "pitch", "poly1", "incl0/tilt")
     est, std = f["estimate"]["coefficients"][0][0], f["std"]["coefficients"][0][0]  # roll component
     assert abs(est - coupling) <= 3 * std, (est, std)
+
+
+def test_audit_names_an_inclinometer_error_harmonic_in_yaw():
+    """The inclinometer reads roll + A sin(2 yaw + 0.5) and pitch - A/2 cos(2 yaw + 0.5), A = 4e-3 rad, while the
+    target is yawed +-51..57 deg (steering weights (1, 1, 14), 6-15 s periods).  Over a yaw sweep of +-30 deg the
+    second harmonic is a quadratic to the noise (measured: named poly2 in yaw); over +-55 deg it is not.  The
+    reported amplitude sigma is 2.2e-4 rad (roll) on this run: A is ~18 sigma.  Named unlisted, harmonic of order
+    2 in yaw; amplitudes and phases within 3 sigma (pitch: A/2 sin(2 yaw + 0.5 - pi/2))."""
+    amplitude, phase = 4e-3, 0.5
+
+    def plant(sc, rec):
+        inc = rec.sensors["incl0"]
+        yaw = sc.kinematics((inc.t_ns - sc.t0_ns) * 1e-9)[5][:, 2]
+        inc.values["roll"] = inc.values["roll"] + amplitude * np.sin(2 * yaw + phase)
+        inc.values["pitch"] = inc.values["pitch"] - 0.5 * amplitude * np.cos(2 * yaw + phase)
+
+    result = _plant_and_audit(plant, steer_angle_axes=(1.0, 1.0, 14.0), steer_period_s=(6.0, 15.0))
+    f = _only_finding(result)
+    assert (f["effect"], f["driver"], f["form"], f["target"]) == ("unlisted", "yaw", "harmonic", "incl0/tilt")
+    assert f["estimate"]["order"] == 2.0
+    est, std = f["estimate"], f["std"]
+    np.testing.assert_array_less(np.abs(np.subtract(est["amplitude"], [amplitude, 0.5 * amplitude])),
+                                 3 * np.asarray(std["amplitude"]))
+    np.testing.assert_array_less(np.abs(np.subtract(est["phase_rad"], [phase, phase - np.pi / 2])),
+                                 3 * np.asarray(std["phase_rad"]))
