@@ -40,6 +40,14 @@ therefore solves the linearised graph with and without the candidate sparsely (G
 profiles the states out exactly, and hands the engine a graph of the candidate's variables alone with the
 same residual sums and degrees of freedom: the same F statistic at a fraction of the cost.
 
+Generic terms (:mod:`selfcal.audit.terms`, effect ``unlisted``): corrections applied to the measurement inside
+its factor, ``e += G c``: on ``tracker0/position`` a distance error ``k phi(x)`` along each sample's line of sight
+from ``tracker_W`` (m), on ``incl0/tilt`` a reading error ``k phi(x)`` in roll and pitch (rad).  Drivers: time,
+range, azimuth, elevation, roll, pitch, yaw, speed, vibration (:meth:`TrackerAudit._driver_values`) and the
+recording's auxiliary columns.  The library is scored in information form (``information_form``,
+:meth:`TrackerAudit.extend_all`): one linearisation and one factorisation of the base normal equations per
+search step for every term at once.
+
 Observability (what a run can show): the inclinometer's roll bias trades against the accelerometer's y bias
 (both body-fixed), so only the camera's beam elevation pins the pitch and the accelerometer bias prior the
 roll; the prism lever arm shows through the beam camera (its height against the inclinometer's pitch) and,
@@ -56,10 +64,12 @@ import gtsam
 import numpy as np
 
 from selfcal.core import inertial
+from selfcal.audit import terms as library
 from selfcal.audit.engine import Candidate, Fit, ResidualFamily, variance_factor
+from selfcal.audit.terms import Coordinate
 from selfcal.factors import tracker as ft
 from selfcal.core.stats import correlation_inflation
-from selfcal.core.solve import DegenerateDataError, marginal_covariances
+from selfcal.core.solve import DegenerateDataError, joint_covariance, marginal_covariances
 from selfcal.graphs.tracker import TrackerEstimator, gauss_newton
 from selfcal.models import tracker as mt
 
@@ -96,6 +106,26 @@ STRONG_VIBRATION = 10.0  # v_d / v_a above which the accelerometer's disturbance
 PRIOR_SIGMA = {name: e.prior_sigma for name, e in EFFECTS.items()}
 
 
+@dataclass(frozen=True)
+class _TermTarget:
+    """A residual family the generic terms act in: how many components a term's coefficient has, its unit, the
+    symbol of its term variables and the weak prior on them (per unit of the scaled driver u in [-1, 1])."""
+
+    dim: int
+    unit: str
+    symbol: str
+    prior_sigma: float
+
+
+# the tracker's distance error along each sample's line of sight (1 component, m); the inclinometer's reading error
+# in roll and pitch (2 components, rad).  The camera's bearing takes no terms (its residual reports what remains)
+TERM_TARGETS = {("tracker0", "position"): _TermTarget(1, "m", "u", 1.0),
+                ("incl0", "tilt"): _TermTarget(2, "rad", "w", 0.1)}
+DRIVER_UNITS = {"time": "s", "range": "m", "azimuth": "rad", "elevation": "rad", "roll": "rad", "pitch": "rad",
+                "yaw": "rad", "speed": "m/s", "vibration": "rad"}
+ANGLE_DRIVERS = ("azimuth", "elevation", "roll", "pitch", "yaw")
+
+
 def _index(key: int) -> int:
     return int(gtsam.Symbol(key).index())
 
@@ -107,8 +137,14 @@ class TrackerAudit:
     base_model = "smoother"
     base_effects: tuple = ()
     folds = 2
+    # ~15 state columns per keyframe (thousands in a run): the library's score tests from one factorisation of the
+    # normal equations (every candidate's columns at once); the states have the IMU chain and the tracker, the
+    # biases and effects priors, so the base information is full rank
+    information_form = True
 
-    def __init__(self, estimator: TrackerEstimator):
+    def __init__(self, estimator: TrackerEstimator, channels: dict | None = None):
+        """``channels``: the recording's auxiliary columns, ``name -> (t_ns (N,), values (N,), unit)``, offered
+        to the generic term library as drivers (interpolated to each residual's time)."""
         if estimator.graph_log is None:
             raise ValueError("the estimator must run with TrackerOptions(keep_graph=True)")
         e = estimator
@@ -183,6 +219,115 @@ class TrackerAudit:
         self._parts = {None: (0, self.n_keyframes), 0: (0, half), 1: (half, self.n_keyframes)}
         self._bias_prior_sigmas = np.array([estimator.options.initial_accel_bias_sigma] * 3
                                            + [estimator.options.initial_gyro_bias_sigma] * 3)
+        self.channel_units = {name: unit for name, (_, _, unit) in (channels or {}).items()}
+        self._driver_values(channels or {})
+        self._keys_of = {target: library.TermKeys(t.symbol) for target, t in TERM_TARGETS.items()}
+        self._inflations: dict = {}  # residual_correlation per model
+
+    # --- the generic term library ----------------------------------------------------------------------------
+
+    def _driver_values(self, channels: dict) -> None:
+        """Every driver at every residual row, from the base fit (fixed for the recording): ``m['drivers']`` per
+        tracker block (arrays over its samples) and per inclinometer sample (arrays of one), and the tracker
+        samples' line-of-sight unit vectors ``m['los']``.
+
+        Range, azimuth and elevation are those of the base fit's prism at the keyframe seen from the tracker
+        (``tracker_W``); roll, pitch and yaw the base fit's attitude there (yaw unwrapped over the run; for the
+        inclinometer's rows roll and pitch are its readings); speed the
+        base fit's velocity's; vibration the disturbance's standard deviation the online pass measured (rad,
+        interpolated in time to tracker samples); time that of each sample.
+        """
+        base, n = self.base_values, self.noise
+        ypr = np.array([base.atPose3(X(k)).rotation().ypr() for k in range(self.n_keyframes)])
+        attitude = {"roll": ypr[:, 2], "pitch": ypr[:, 1], "yaw": np.unwrap(ypr[:, 0])}
+        t_incl = np.array([(m["t_ns"] - self.t0_ns) * 1e-9 for m in self.incl])
+        vibration = np.array([m["vibration"] for m in self.incl])
+
+        def sight(p_W):
+            d = np.atleast_2d(p_W) - n.tracker_W
+            r = np.linalg.norm(d, axis=1)
+            return d / r[:, None], {"range": r, "azimuth": np.arctan2(d[:, 1], d[:, 0]),
+                                    "elevation": np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))}
+
+        def aux(t_s):
+            return {name: np.interp(t_s, (np.asarray(t_ns) - self.t0_ns) * 1e-9, np.asarray(v, dtype=float))
+                    for name, (t_ns, v, _) in channels.items()}
+
+        def at_keyframe(k, count):
+            pose = base.atPose3(X(k))
+            los, geometry = sight(pose.translation() + pose.rotation().matrix() @ n.r_P_B)
+            return np.tile(los, (count, 1)), {**{g: np.full(count, v[0]) for g, v in geometry.items()},
+                                              **{a: np.full(count, v[k]) for a, v in attitude.items()},
+                                              "speed": np.full(count, np.linalg.norm(base.atVector(V(k))))}
+
+        # the geometry is the base fit's prism at the keyframe the samples were moved to, not the measured samples:
+        # a driver holding the residual's own noise would regress the noise on itself (measured: a range term
+        # "found" at p = 1e-141 on a run without any effect)
+        for m in self.tracker:
+            k, count = m["k"], len(m["z"])
+            t = self.t_s[k] - m["lead_s"]
+            m["los"], state = at_keyframe(k, count)
+            m["drivers"] = {"time": t, **state,
+                            "vibration": np.interp(t, t_incl, vibration) if t_incl.size else np.zeros(count),
+                            **aux(t)}
+        for m, t in zip(self.incl, t_incl):
+            _, state = at_keyframe(m["k"], 1)
+            # the inclinometer's roll and pitch drivers are its own readings: a reading error is a function of what
+            # it reads (a cross-axis coupling: roll picks up k pitch), while the fit's attitude has already taken
+            # part of it (its noise, 1e-4 rad against tilts of 1e-2, does not regress on itself measurably)
+            state.update(roll=m["z"][:1], pitch=m["z"][1:])
+            m["drivers"] = {"time": np.array([t]), **state, "vibration": np.array([m["vibration"]]),
+                            **aux(np.array([t]))}
+        full = self._rows(None)
+        self._drivers = {target: {name: np.concatenate([m["drivers"][name] for m in rows])
+                                  for name in (rows[0]["drivers"] if rows else {})}
+                         for target, rows in full.items()}
+
+    def _rows(self, part) -> dict[tuple[str, str], list[dict]]:
+        """The blocks of each term target whose factors a fit of ``part`` holds, in its families' row order."""
+        lo, hi = self._parts[part]
+        return {("tracker0", "position"): [m for m in self.tracker if lo < m["k"] < hi and "fraction" in m],
+                ("incl0", "tilt"): [m for m in self.incl if lo <= m["k"] < hi]}
+
+    def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        def kind(name):
+            return ("time" if name == "time" else "angle" if name in ANGLE_DRIVERS
+                    else "channel" if name in self.channel_units else "state")
+        units = {**DRIVER_UNITS, **self.channel_units}
+        return {target: [Coordinate(name, v, units.get(name, ""), kind(name)) for name, v in drivers.items()]
+                for target, drivers in self._drivers.items()}
+
+    def catalog_term(self, candidate: Candidate) -> None:
+        return None  # no catalog effect of the tracker is one correction in one driver (scale, offset, lever arm
+        # and sensitivity act through the attitude, the velocity or the disturbance)
+
+    def _term_parts(self, effects, m: dict, target: tuple[str, str], known=None):
+        """The generic terms of ``effects`` on one block of ``target``: ``[(key, G)]`` of the fitted ones (error
+        ``+= G c``), or with ``known`` (values holding the trained coefficients) their correction, in the error's
+        shape.  Tracker: ``G = phi(x_i) u_i`` (the line of sight, one coefficient per basis column); inclinometer:
+        ``G = phi(x) I`` (roll and pitch)."""
+        dim = TERM_TARGETS[target].dim
+        columns, correction = [], np.zeros(np.size(m["z"]))
+        for c in effects:
+            if c.term is None or (c.sensor, c.target) != target:
+                continue
+            phi = c.term.columns(m["drivers"])
+            for j, key in enumerate(self._keys_of[target](c.term)):
+                G = (phi[:, j:j + 1] * m["los"]).reshape(-1, 1) if dim == 1 else phi[0, j] * np.eye(dim)
+                if known is None:
+                    columns.append((key, G))
+                else:
+                    correction = correction + G @ known.atVector(key)
+        return columns, correction.reshape(np.shape(m["z"]))
+
+    def _term_keys(self, effects) -> list[tuple[int, int, float]]:
+        """(key, dimension, prior sigma) of every term variable of ``effects``."""
+        out = []
+        for c in effects:
+            if c.term is not None:
+                t = TERM_TARGETS[(c.sensor, c.target)]
+                out += [(key, t.dim, t.prior_sigma) for key in self._keys_of[(c.sensor, c.target)](c.term)]
+        return out
 
     def _body_rate(self, k: int) -> np.ndarray:
         """Body rate (rad/s, body frame) over the interval before keyframe ``k`` from the base fit's attitudes
@@ -238,15 +383,27 @@ class TrackerAudit:
     def candidates(self) -> list[Candidate]:
         return [Candidate(name, e.sensor, e.meaning, e.target, e.coordinate) for name, e in EFFECTS.items()]
 
-    def _prism_factor(self, m: dict, noise, lo: int, lever_key, offset_key, lever, offset):
-        """The tracker block of keyframe ``m['k']`` with the calibration effects, or None for the first keyframe
-        of a part (its samples lie before it: no velocity variable to move or interpolate them with)."""
+    def _prism_factor(self, m: dict, noise, lo: int, lever_key, offset_key, lever, offset, effects=(), known=None):
+        """The tracker block of keyframe ``m['k']`` with the calibration effects and the generic terms of
+        ``effects`` (fitted, or known from ``known``), or None for the first keyframe of a part (its samples lie
+        before it: no velocity variable to move or interpolate them with)."""
         k = m["k"]
         if k <= lo or "fraction" not in m:
             return None
-        return ft.calibrated_prism_factor(noise, X(k), m["z"], self.noise.r_P_B, m["v_rot"], lever_key, offset_key,
+        terms, correction = self._term_parts(effects, m, ("tracker0", "position"), known)
+        # a known term is a known correction of the measurement: e = pred + G c - z = pred - (z - G c)
+        z = m["z"] - correction
+        return ft.calibrated_prism_factor(noise, X(k), z, self.noise.r_P_B, m["v_rot"], lever_key, offset_key,
                                           lever, offset, V(k - 1), m["lead_s"], m["v_start"],
-                                          velocity_keys=(V(k - 1), V(k)), velocity_fraction=m["fraction"])
+                                          velocity_keys=(V(k - 1), V(k)), velocity_fraction=m["fraction"],
+                                          term_columns=terms)
+
+    def _incl_factor(self, m: dict, noise, keys: dict, fixed: dict, effects=(), known=None):
+        """The inclinometer factor of one sample with the calibration effects and the generic terms of ``effects``
+        (fitted, or known from ``known``)."""
+        terms, correction = self._term_parts(effects, m, ("incl0", "tilt"), known)
+        return ft.calibrated_inclinometer_factor(noise, X(m["k"]), m["z"] - correction, m["d"], keys, fixed,
+                                                 term_columns=terms)
 
     def _velocity_factor(self, m: dict, lo: int, offset_key, offset):
         k = m["k"]
@@ -260,9 +417,9 @@ class TrackerAudit:
 
     # --- graphs ----------------------------------------------------------------------------------------------
 
-    def _build(self, effects, part, fixed: dict | None = None):
+    def _build(self, effects, part, fixed: dict | None = None, known=None):
         """Graph and initial values of keyframes [lo, hi) with ``effects`` as variables; ``fixed`` gives constant
-        effect values instead (the held-out half)."""
+        catalog effect values instead and ``known`` (values) the generic terms' (the held-out half)."""
         lo, hi = self._parts[part]
         inside = lambda k: lo <= k < hi  # noqa: E731
         names = {c.effect for c in effects}
@@ -283,7 +440,8 @@ class TrackerAudit:
         for m in self.tracker:
             if inside(m["k"]):
                 factor = self._prism_factor(m, gtsam.noiseModel.Isotropic.Sigma(m["z"].size, m["sigma"]), lo,
-                                            key["lever_arm_prism"], key["tracker_time_offset"], lever, offset)
+                                            key["lever_arm_prism"], key["tracker_time_offset"], lever, offset,
+                                            effects, known)
                 if factor is not None:
                     graph.add(factor)
         for m in self.velocity:
@@ -298,8 +456,8 @@ class TrackerAudit:
                       "accel_sensitivity": float(np.asarray(fixed.get("incl_accel_sensitivity", [0.0])).ravel()[0])}
         for m in self.incl:
             if inside(m["k"]):
-                graph.add(ft.calibrated_inclinometer_factor(gtsam.noiseModel.Isotropic.Sigma(2, m["sigma"]),
-                                                            X(m["k"]), m["z"], m["d"], incl_keys, incl_fixed))
+                graph.add(self._incl_factor(m, gtsam.noiseModel.Isotropic.Sigma(2, m["sigma"]), incl_keys,
+                                            incl_fixed, effects, known))
         for k in range(lo, hi):
             values.insert(X(k), self.base_values.atPose3(X(k)))
             values.insert(V(k), self.base_values.atVector(V(k)))
@@ -309,12 +467,16 @@ class TrackerAudit:
                 graph.add(gtsam.PriorFactorVector(e.key, np.zeros(e.dim),
                                                   gtsam.noiseModel.Isotropic.Sigma(e.dim, e.prior_sigma)))
                 values.insert(e.key, np.zeros(e.dim))
+        if known is None:
+            for key, dim, sigma in self._term_keys(effects):
+                graph.add(gtsam.PriorFactorVector(key, np.zeros(dim), gtsam.noiseModel.Isotropic.Sigma(dim, sigma)))
+                values.insert(key, np.zeros(dim))
         return graph, values
 
     def fit(self, effects, fold=None) -> Fit:
         graph, values = self._build(effects, fold)
         values = gauss_newton(graph, values)
-        return Fit(tuple(effects), graph, values, self._families(graph, values, fold), {"fold": fold})
+        return Fit(tuple(effects), graph, values, self._families(graph, values, fold, None, effects), {"fold": fold})
 
     def extend(self, fit: Fit, candidate: Candidate):
         """(equivalent graph, values, columns) for the engine's score test, with the states profiled out.
@@ -322,8 +484,12 @@ class TrackerAudit:
         Linearised at the fit (candidate at 0), the residual sums with the candidate (``rss_new``) and without it
         (``rss_old``) come from sparse solves; the returned graph has the candidate's variables only:
         ``[theta - c; r]`` with ``|c|^2 = rss_old - rss_new`` (one direction) and ``|r|^2 = rss_new`` spread over
-        ``n_obs - n_params`` rows, so its dense test gives exactly the full problem's F and dof.
+        ``n_obs - n_params`` rows, so its dense test gives exactly the full problem's F and dof.  A generic term is
+        tested on the whole graph (:meth:`extend_all`): the engine's information-form test profiles the states.
         """
+        if candidate.term is not None:
+            graph, values, groups = self.extend_all(fit, [candidate])
+            return graph, values, groups[0]
         graph, _ = self._build(fit.effects + (candidate,), fit.context["fold"])
         e = EFFECTS[candidate.effect]
         start = gtsam.Values(fit.values)
@@ -350,15 +516,34 @@ class TrackerAudit:
         theta0.insert(e.key, np.zeros(e.dim))
         return profiled, theta0, [(e.key, np.arange(e.dim))]
 
+    def extend_all(self, fit: Fit, candidates):
+        """One graph holding every candidate (new variables at zero) linearised at ``fit``: (graph, values, new
+        columns each), for the engine's information-form score tests (one factorisation for all of them)."""
+        graph, start = self._build(fit.effects + tuple(candidates), fit.context["fold"])
+        values = gtsam.Values(fit.values)
+        groups = []
+        for cand in candidates:
+            if cand.term is None:
+                keys = [(EFFECTS[cand.effect].key, EFFECTS[cand.effect].dim)]
+            else:
+                keys = [(key, dim) for key, dim, _ in self._term_keys([cand])]
+            for key, dim in keys:
+                if not values.exists(key):
+                    values.insert(key, start.atVector(key))
+            groups.append([(key, np.arange(dim)) for key, dim in keys])
+        return graph, values, groups
+
     def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
         other = 1 - fold
-        fixed = {c.effect: fit.values.atVector(EFFECTS[c.effect].key) for c in fit.effects}
-        graph, values = self._build((), other, fixed=fixed)
-        return self._families(graph, gauss_newton(graph, values), other, fixed)
+        fixed = {c.effect: fit.values.atVector(EFFECTS[c.effect].key) for c in fit.effects if c.term is None}
+        graph, values = self._build(fit.effects, other, fixed=fixed, known=fit.values)
+        return self._families(graph, gauss_newton(graph, values), other, fixed, fit.effects, fit.values)
 
-    def _families(self, graph, values, part, fixed: dict | None = None) -> list[ResidualFamily]:
+    def _families(self, graph, values, part, fixed: dict | None = None, effects=(),
+                  known=None) -> list[ResidualFamily]:
         """Residuals of the tracker, inclinometer and camera factors of keyframes in ``part`` at ``values``
-        (effects from ``values`` where they are variables, else from ``fixed``)."""
+        (effects from ``values`` where they are variables, else from ``fixed``; the generic terms of ``effects``
+        from ``values``, or from ``known`` where they were trained on the other part)."""
         lo, hi = self._parts[part]
         tr, inc, cam = [], [], []
         fixed = dict(fixed or {})
@@ -370,7 +555,7 @@ class TrackerAudit:
         unit = gtsam.noiseModel.Unit.Create
         for m in self.tracker:
             if lo <= m["k"] < hi:
-                f = self._prism_factor(m, unit(m["z"].size), lo, None, None, lever, offset)
+                f = self._prism_factor(m, unit(m["z"].size), lo, None, None, lever, offset, effects, known)
                 if f is None:
                     continue
                 e = np.asarray(f.unwhitenedError(values)).reshape(-1, 3)
@@ -381,7 +566,7 @@ class TrackerAudit:
                       "accel_sensitivity": float(np.asarray(fixed.get("incl_accel_sensitivity", [0.0]))[0])}
         for m in self.incl:
             if lo <= m["k"] < hi:
-                f = ft.calibrated_inclinometer_factor(unit(2), X(m["k"]), m["z"], m["d"], {}, incl_fixed)
+                f = self._incl_factor(m, unit(2), {}, incl_fixed, effects, known)
                 e = np.asarray(f.unwhitenedError(values))
                 inc.append((e, e / m["sigma"], (m["t_ns"] - self.t0_ns) * 1e-9, float(np.linalg.norm(m["z"])),
                             m["vibration"]))
@@ -428,12 +613,37 @@ class TrackerAudit:
         by it.  Under the null hypothesis the two residual sets coincide.  The engine applies one inflation to
         every candidate: the largest of the families', so no candidate's evidence is overstated."""
         everything = tuple(fit.effects) + tuple(c for c in self.candidates() if c not in fit.effects)
-        full = self.fit(everything, fit.context["fold"]) if len(everything) > len(fit.effects) else fit
-        return max((self._inflation(family) for family in full.families), default=1.0)
+        if len(everything) == len(fit.effects):
+            return max((self._inflation(family) for family in fit.families), default=1.0)
+        # the engine asks once per candidate of a step, always about the same model: a fit is deterministic in its
+        # effects and fold, so the refit is done once per model
+        key = (tuple(c.key for c in everything), fit.context["fold"])
+        if key not in self._inflations:
+            full = self.fit(everything, fit.context["fold"])
+            self._inflations[key] = max((self._inflation(family) for family in full.families), default=1.0)
+        return self._inflations[key]
 
     def estimate(self, fit: Fit, candidate: Candidate) -> tuple[dict, dict]:
         """Value and 1-sigma: marginal covariance scaled by the fit's variance factor and by the time
-        correlation of its target family's residuals (fewer independent samples than factors)."""
+        correlation of its target family's residuals (fewer independent samples than factors).  A generic term's
+        in the driver's own units (:func:`selfcal.audit.terms.describe`): the tracker's in m along the line of
+        sight, the inclinometer's in rad for roll and pitch."""
+        if candidate.term is not None:
+            target = (candidate.sensor, candidate.target)
+            keys = self._keys_of[target](candidate.term)
+            family = fit.family(candidate.target, candidate.sensor)
+            inflation = self._inflation(family) if family is not None else 1.0
+            joint = joint_covariance(fit.graph, fit.values, keys, "the audited term") * (
+                variance_factor(fit) * inflation)
+            estimate, std = library.describe(candidate.term, np.array([fit.values.atVector(k) for k in keys]), joint,
+                                             self._drivers[target], TERM_TARGETS[target].unit,
+                                             {**DRIVER_UNITS, **self.channel_units}.get(candidate.term.driver, ""))
+            estimate["target"] = f"{candidate.sensor}/{candidate.target}"
+            if target == ("tracker0", "position"):
+                estimate["direction"] = "line of sight (positive: the tracker reads the distance long)"
+            else:
+                estimate["axes"] = ["roll", "pitch"]
+            return estimate, std
         e = EFFECTS[candidate.effect]
         cov = marginal_covariances(fit.graph, fit.values, [e.key], candidate.effect)[e.key]
         target = fit.family(e.target, e.sensor)

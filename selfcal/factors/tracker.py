@@ -90,7 +90,7 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
                             offset_key: int | None = None, lever_fixed=np.zeros(3), offset_fixed: float = 0.0,
                             start_velocity_key: int | None = None, lead_s=None, v_start=None,
                             velocity_keys: tuple[int, int] | None = None,
-                            velocity_fraction=None) -> gtsam.CustomFactor:
+                            velocity_fraction=None, term_columns=()) -> gtsam.CustomFactor:
     """Tracker positions with the audit's calibration effects: ``e_i = p + R (r + dr) - dt v_i - z_i`` (m, world).
 
     ``p_P_W`` (n, 3): the n samples of one keyframe, each moved to the keyframe's time (one factor per block);
@@ -106,16 +106,25 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
     the known remainder, e.g. the lever arm's rotation velocity ``R (w x r)``), instead of a measured velocity: a
     noisy regressor (the tracker's own velocity, 2 mm/s per sample, against a within-block change of a few
     mm/s) attenuates the offset towards 0 (errors in variables).  Keys: the pose, then the lever arm, the offset,
-    the start velocity, then those of ``velocity_keys`` not already there.  Error (3 n,).
+    the start velocity, then those of ``velocity_keys`` not already there, then the terms'.  Error (3 n,).
+
+    ``term_columns``: the audit's generic terms, ``[(key, G)]`` with ``G`` (3 n, q) the known columns of a
+    correction linear in the key's q coefficients (a range error ``k phi(range)`` along each sample's line of
+    sight): ``e += G c``.
     """
     z, r0, v = np.atleast_2d(p_P_W).astype(float), np.asarray(r_P_B, dtype=float), np.atleast_2d(v_W).astype(float)
     n = len(z)
     keys = [pose_key] + [key for key in (lever_key, offset_key, start_velocity_key) if key is not None]
     if velocity_keys is not None:
         keys += [key for key in velocity_keys if key not in keys]
+    terms = [(key, np.asarray(G, dtype=float).reshape(3 * n, -1)) for key, G in term_columns]
+    keys += [key for key, _ in terms]
     lead = np.zeros(n) if lead_s is None else np.asarray(lead_s, dtype=float)
     v0 = np.zeros(3) if v_start is None else np.asarray(v_start, dtype=float)
     frac = None if velocity_keys is None else np.broadcast_to(np.asarray(velocity_fraction, dtype=float), (n,))
+    # the constant parts of the Jacobian blocks, built once (the audit linearises each block many times)
+    lead_block = -np.kron(lead[:, None], np.eye(3))
+    weight_blocks = None if frac is None else [np.kron(w[:, None], np.eye(3)) for w in (1.0 - frac, frac)]
 
     def error(this, values, H):
         pose = values.atPose3(pose_key)
@@ -129,6 +138,8 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
             vi = np.outer(1.0 - frac, values.atVector(velocity_keys[0])) + np.outer(frac, values.atVector(
                 velocity_keys[1])) + v
         e = (mt.prism_position_delayed(R, pose.translation(), r, vi, dt) - moved).ravel()
+        for key, G in terms:
+            e = e + G @ values.atVector(key)
         if H is not None:
             blocks = {pose_key: np.tile(np.hstack([-R @ so3.hat(r), R]), (n, 1))}
             if lever_key is not None:
@@ -136,11 +147,12 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
             if offset_key is not None:
                 blocks[offset_key] = -np.broadcast_to(vi, (n, 3)).reshape(-1, 1)
             if start_velocity_key is not None:
-                blocks[start_velocity_key] = -np.kron(lead[:, None], np.eye(3))
+                blocks[start_velocity_key] = lead_block
             if velocity_keys is not None:  # one key may also be the start velocity: the blocks add up
-                for key, weight in zip(velocity_keys, (1.0 - frac, frac)):
-                    block = -dt * np.kron(weight[:, None], np.eye(3))
+                for key, weight in zip(velocity_keys, weight_blocks):
+                    block = -dt * weight
                     blocks[key] = blocks[key] + block if key in blocks else block
+            blocks.update(terms)
             for i, key in enumerate(keys):
                 H[i] = blocks[key]
         return e
@@ -193,16 +205,19 @@ def calibrated_prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_
 
 
 def calibrated_inclinometer_factor(noise, pose_key: int, z_rad, disturbance_rad, effect_keys: dict,
-                                   fixed: dict) -> gtsam.CustomFactor:
+                                   fixed: dict, term_columns=()) -> gtsam.CustomFactor:
     """Inclinometer reading ``z = (roll, pitch)`` (rad) with the audit's calibration effects
     (:func:`selfcal.models.tracker.inclinometer_reading`): ``e = pred - z``.
 
     ``effect_keys`` maps 'bias' (2), 'scale' (1), 'accel_sensitivity' (1) to variable keys; an effect without a
-    key takes its constant from ``fixed`` (0 when absent).  Keys: the pose, then the effects in that order.
+    key takes its constant from ``fixed`` (0 when absent).  Keys: the pose, then the effects in that order, then
+    the terms'.  ``term_columns``: the audit's generic terms, ``[(key, G)]`` with ``G`` (2, q) known (a reading
+    error ``k phi(yaw)`` in roll and pitch: ``G = phi I``): ``e += G c``.
     """
     z, d = np.asarray(z_rad, dtype=float), np.asarray(disturbance_rad, dtype=float)
     names = [name for name in ("bias", "scale", "accel_sensitivity") if effect_keys.get(name) is not None]
-    keys = [pose_key] + [effect_keys[name] for name in names]
+    terms = [(key, np.asarray(G, dtype=float).reshape(2, -1)) for key, G in term_columns]
+    keys = [pose_key] + [effect_keys[name] for name in names] + [key for key, _ in terms]
     const = {"bias": np.asarray(fixed.get("bias", np.zeros(2)), dtype=float),
              "scale": float(fixed.get("scale", 0.0)), "accel_sensitivity": float(fixed.get("accel_sensitivity", 0.0))}
 
@@ -217,6 +232,8 @@ def calibrated_inclinometer_factor(noise, pose_key: int, z_rad, disturbance_rad,
             H[0] = np.hstack([J["rotation"], np.zeros((2, 3))])
             for i, name in enumerate(names, start=1):
                 H[i] = J[name]
-        return pred - z
+            for i, (_, G) in enumerate(terms, start=1 + len(names)):
+                H[i] = G
+        return pred - z + sum((G @ values.atVector(key) for key, G in terms), np.zeros(2))
 
     return gtsam.CustomFactor(noise, keys, error)

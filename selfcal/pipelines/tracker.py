@@ -311,9 +311,28 @@ def estimator_for_audit(recording: Recording, keyframe_s: float = 0.2) -> Tracke
 
 
 def audit_system(recording: Recording, base: str = "smoother", sensors: list[str] | None = None):
-    """The audit's view of a tracker recording: the ungated online pass with every factor kept."""
+    """The audit's view of a tracker recording: the ungated online pass with every factor kept, and the
+    recording's auxiliary columns as drivers of the generic term library."""
     from selfcal.audit.tracker import TrackerAudit
-    return TrackerAudit(estimator_for_audit(recording))
+    return TrackerAudit(estimator_for_audit(recording), channels=auxiliary_channels(recording))
+
+
+KNOWN_COLUMNS = {**{name: set(columns) for name, columns in REQUIRED.items()},
+                 "tracker0": {"x", "y", "z", "vx", "vy", "vz"}}
+
+
+def auxiliary_channels(recording: Recording) -> dict[str, tuple]:
+    """Every column of the four sensors that is not one of the system's own (``temperature [degC]`` ...):
+    ``name -> (t_ns, values, unit)``; a name two sensors share is prefixed with the sensor (``incl0.temperature``)."""
+    found = [(sensor, column) for sensor in REQUIRED if sensor in recording.sensors
+             for column in recording.sensors[sensor].values if column not in KNOWN_COLUMNS[sensor]]
+    names = [column for _, column in found]
+    out = {}
+    for sensor, column in found:
+        s = recording.sensors[sensor]
+        name = column if names.count(column) == 1 else f"{sensor}.{column}"
+        out[name] = (np.asarray(s.t_ns), np.asarray(s.values[column], dtype=float), s.units.get(column, ""))
+    return out
 
 
 def online_estimator(meta: dict[str, dict]):

@@ -112,9 +112,12 @@ class TrackerScenario:
         gives (k = 0: a perfect specific-force sensor; an audit effect).
     tracker_clock_offset_s : ``t_tracker = t_imu + offset`` (the tracker stamps late by offset; an audit effect).
     lever_arm_prism_m, lever_arm_camera_m : prism and camera positions in the body (IMU) frame, m.
+    tracker_W_m : the tracker station in the world frame, m (its positions are world coordinates; the camera sees
+        the beam from there).  Below or beside the target's line of advance, steering changes the range.
     with_velocity : write tracker velocity columns.
     steer_angle_deg, steer_period_s : (min, max) amplitude and period of the slow steering sines of roll, pitch
-        and yaw (3 each); larger ones make a calibration run (the audit needs the tilt to vary).
+        and yaw (3 each); larger ones make a calibration run (the audit needs the tilt to vary);
+        ``steer_angle_axes`` weights roll, pitch and yaw (default 1 each; a yaw sweep: (1, 1, 5)).
     steer_position_m, steer_position_period_s : the same for the lateral and vertical position (m, s); a
         calibration run that moves the target (the clock offset shows only while it moves);
         ``steer_position_axes`` weights x, y, z (default lateral and vertical).
@@ -126,7 +129,9 @@ class TrackerScenario:
                  incl_sigma_rad: float = 0.005 * DEG, cam_sigma_px: float = 0.2, incl_bias_rad=(0.0, 0.0),
                  incl_scale: float = 0.0, incl_accel_sensitivity: float = 0.0, tracker_clock_offset_s: float = 0.0,
                  lever_arm_prism_m=(0.12, -0.05, 0.25), lever_arm_camera_m=(0.10, 0.03, 0.20),
+                 tracker_W_m=(0.0, 0.0, 0.0),
                  with_velocity: bool = True, steer_angle_deg=(0.05, 0.3), steer_period_s=(60.0, 600.0),
+                 steer_angle_axes=(1.0, 1.0, 1.0),
                  steer_position_m=(0.002, 0.01), steer_position_period_s=(120.0, 900.0),
                  steer_position_axes=(0.0, 1.0, 1.0),
                  imu_rate_hz: float = 200.0, tracker_rate_hz: float = 50.0,
@@ -144,6 +149,7 @@ class TrackerScenario:
         self.tracker_clock_offset_s = float(tracker_clock_offset_s)
         self.r_P_B = np.asarray(lever_arm_prism_m, dtype=float)
         self.r_C_B = np.asarray(lever_arm_camera_m, dtype=float)
+        self.tracker_W = np.asarray(tracker_W_m, dtype=float)
         # camera looks back along -x_B towards the tracker: z_C = -x_B, x_C = -y_B, y_C = -z_B
         self.R_B_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
         self.camera_matrix = np.array([[1200.0, 0.0, 320.0], [0.0, 1200.0, 240.0], [0.0, 0.0, 1.0]])
@@ -162,7 +168,7 @@ class TrackerScenario:
         self.steer_pos = _Sines(rng_motion.uniform(*steer_position_m, (k, 3)) * np.asarray(steer_position_axes),
                                 rng_motion.uniform(*steer_position_period_s, (k, 3)),
                                 rng_motion.uniform(0, 2 * np.pi, (k, 3)))
-        self.steer_att = _Sines(rng_motion.uniform(*steer_angle_deg, (k, 3)) * DEG,
+        self.steer_att = _Sines(rng_motion.uniform(*steer_angle_deg, (k, 3)) * DEG * np.asarray(steer_angle_axes),
                                 rng_motion.uniform(*steer_period_s, (k, 3)), rng_motion.uniform(0, 2 * np.pi, (k, 3)))
         self.bursts = self._schedule_bursts(rng_burst, burst_rate_per_min, burst_accel_m_s2, burst_angle_deg)
         self._burst_starts = np.array([b.start_s for b in self.bursts])
@@ -371,7 +377,7 @@ class TrackerScenario:
         for flt in self._faults("tracker0", "dropout"):
             broken |= (t >= flt.start_s) & (t < flt.end_s)
         R, p, *_ = self.kinematics(t)
-        d_C = mt.beam_direction_C(R, p, self.r_C_B, self.R_B_C)
+        d_C = mt.beam_direction_C(R, p, self.r_C_B, self.R_B_C, self.tracker_W)
         uv = mt.pixel_from_direction_C(d_C, self.camera_matrix, self.dist_coeffs) + noise((len(t), 2),
                                                                                           self.cam_sigma_px)
         out["cam0"] = (t[~broken], {"uv": uv[~broken]})
@@ -404,7 +410,7 @@ class TrackerScenario:
             "tracker0": {"sensor_type": "laser_tracker", "rate_hz": self.rates["tracker0"],
                          "position_sigma_m": self.tracker_sigma_m,
                          "velocity_sigma_m_s": self.tracker_velocity_sigma_m_s,
-                         "lever_arm_prism_m": self.r_P_B.tolist(), "tracker_W_m": [0.0, 0.0, 0.0]},
+                         "lever_arm_prism_m": self.r_P_B.tolist(), "tracker_W_m": self.tracker_W.tolist()},
             "incl0": {"sensor_type": "inclinometer", "rate_hz": self.rates["incl0"], "sigma_rad": self.incl_sigma_rad,
                       "averaging_s": self.incl_average_s, "T_B_I": "identity"},
             "cam0": {"sensor_type": "beam_spot_camera", "rate_hz": self.rates["cam0"], "sigma_px": self.cam_sigma_px,
