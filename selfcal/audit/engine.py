@@ -364,6 +364,12 @@ class Trial:
     dof: int
 
 
+def _trial(candidate: Candidate, f_stat: float, dof: int, dof_den: int) -> Trial:
+    """A scored candidate; a library term picked by a search (the periodogram's peak frequency) is corrected for it."""
+    p = float(stats.f.sf(f_stat, dof, dof_den))
+    return Trial(candidate, f_stat, p if candidate.term is None else candidate.term.search_corrected(p), dof)
+
+
 @dataclass
 class Rejection:
     """Why a significant candidate was not accepted: ``bic``, ``heldout``, ``implausible`` or ``outdone``."""
@@ -560,8 +566,7 @@ class _Search:
         else:
             f_stat, dof, dof_den = many(graph, values, [columns])[0]
         inflation = self.inflation(fit)
-        f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
-        return Trial(candidate, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof)
+        return _trial(candidate, f_stat / inflation, dof, max(int(dof_den / inflation), 1))
 
     def score_many(self, candidates: list[Candidate], fit: Fit) -> list[Trial]:
         """Score tests of many candidates: from one graph holding them all where the system builds one
@@ -573,8 +578,7 @@ class _Search:
         inflation = self.inflation(fit)
         trials = []
         for cand, (f_stat, dof, dof_den) in zip(candidates, scorers(self.system)[1](graph, values, groups)):
-            f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
-            trials.append(Trial(cand, f_stat, float(stats.f.sf(f_stat, dof, dof_den)), dof))
+            trials.append(_trial(cand, f_stat / inflation, dof, max(int(dof_den / inflation), 1)))
         return trials
 
     def inflation(self, fit: Fit) -> float:
@@ -871,7 +875,7 @@ def remaining_structure(fit: Fit, alpha: float = FAMILY_ALPHA, inflation: float 
                 for term, col in columns.items():
                     f_stat, dof, dof_den = library.residual_score(w[:, j], col)
                     f_stat, dof_den = f_stat / inflation, max(int(dof_den / inflation), 1)
-                    p = min(1.0, library.f_pvalue(f_stat, dof, dof_den) * m_eff)
+                    p = min(1.0, term.search_corrected(library.f_pvalue(f_stat, dof, dof_den)) * m_eff)
                     if best is None or p < best["p_value"]:
                         best = {"driver": term.driver, "form": term.form, "component": j, "p_value": p,
                                 "test": "regression on the residual",
