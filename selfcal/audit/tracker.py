@@ -350,11 +350,17 @@ class TrackerAudit:
         theta0.insert(e.key, np.zeros(e.dim))
         return profiled, theta0, [(e.key, np.arange(e.dim))]
 
-    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+    def heldout_fit(self, fit: Fit, fold: int) -> Fit:
+        """The other half solved with ``fit``'s effect values fixed: its whole graph (IMU factors included) and
+        its residual families, for the engine's held-out comparison."""
         other = 1 - fold
         fixed = {c.effect: fit.values.atVector(EFFECTS[c.effect].key) for c in fit.effects}
         graph, values = self._build((), other, fixed=fixed)
-        return self._families(graph, gauss_newton(graph, values), other, fixed)
+        values = gauss_newton(graph, values)
+        return Fit(tuple(fit.effects), graph, values, self._families(graph, values, other, fixed), {"fold": other})
+
+    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+        return self.heldout_fit(fit, fold).families
 
     def _families(self, graph, values, part, fixed: dict | None = None) -> list[ResidualFamily]:
         """Residuals of the tracker, inclinometer and camera factors of keyframes in ``part`` at ``values``
