@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from concurrent.futures import ProcessPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -58,8 +59,9 @@ class Case:
 
 # --- tracker: the calibration run of tests/test_tracker_audit.py ------------------------------------------------
 
-TRACKER_STEERED = dict(steer_position_m=(0.05, 0.1), steer_position_period_s=(4.0, 8.0),
-                       steer_position_axes=(0.0, 0.0, 1.0))  # the clock offset needs the target to move
+TRACKER_STEERED = dict(steer_position_m=(0.02, 0.05), steer_position_period_s=(4.0, 8.0),
+                       steer_position_axes=(0.0, 0.0, 1.0))  # the clock offset needs the target to move: steered
+# up and down by 2-5 cm a 24 ms offset is ~5 of its sigmas (tests/test_tracker_audit.py steers 5-10 cm: ~12)
 
 
 def tracker_system(seed: int, nominal_lever_error_m=None, **effects):
@@ -87,7 +89,7 @@ def tracker_case(effect: str, size: str, key: str, truth, nominal_lever_error_m=
 
 
 TRACKER = [
-    tracker_case("tracker_time_offset", "24 ms (steered 5-10 cm at 4-8 s)", "dt_s", 0.024,
+    tracker_case("tracker_time_offset", "24 ms (steered 2-5 cm at 4-8 s)", "dt_s", 0.024,
                  tracker_clock_offset_s=0.024, **TRACKER_STEERED),
     tracker_case("incl_bias", "(1.1, 4.2) mrad", "bias", [1.1e-3, 4.2e-3], incl_bias_rad=(1.1e-3, 4.2e-3)),
     tracker_case("lever_arm_prism", "3 cm (height)", "r_m", None, nominal_lever_error_m=np.array([0.0, 0.0, 0.03])),
@@ -185,6 +187,12 @@ def run_one(case: Case, seed: int) -> dict:
     return out
 
 
+def _run_planned(job) -> dict:
+    """One audit in a worker process: (system, case name, seed) -> :func:`run_one`'s record."""
+    system, name, seed = job
+    return run_one(next(c for c in CASES if c.system == system and c.name == name), seed)
+
+
 def summarise(case: Case, runs: list[dict]) -> dict:
     done = [r for r in runs if "refused" not in r]
     sized = [r["within_3_sigma"] for r in done if "within_3_sigma" in r]
@@ -204,30 +212,17 @@ def summarise(case: Case, runs: list[dict]) -> dict:
     return entry
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    _schema.add_arguments(parser, "audit_catalog_recall")
-    parser.add_argument("--seeds", type=int, default=None, help="recordings per planted effect (default 20)")
-    parser.add_argument("--null-seeds", type=int, default=None, help="null recordings per system (default 20)")
-    parser.add_argument("--first-seed", type=int, default=3000)
-    parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated subset of " + ",".join(SYSTEMS))
-    parser.add_argument("--cases", default="", help="only the cases whose effect name contains this text")
-    args = parser.parse_args()
-    n_effect = args.seeds or (2 if args.quick else _schema.DEFAULT_SEEDS)
-    n_null = args.null_seeds or (2 if args.quick else _schema.DEFAULT_SEEDS)
-    start = time.perf_counter()
+def write_results(args, cases: list[Case], runs_of: dict, seconds: float, n_effect: int, n_null: int,
+                  final: bool) -> None:
+    """Summaries, schema rows and the JSON of the audits done so far (printed when ``final``)."""
     rows, table = [], []
-    for case in [c for c in CASES if c.system in args.systems.split(",") and args.cases in c.name]:
-        n = n_null if case.name == "null" else n_effect
-        runs = []
-        for seed in range(args.first_seed, args.first_seed + n):
-            runs.append(run_one(case, seed))
-            r = runs[-1]
-            print(f"  {case.system}/{case.name} seed {seed}: {r.get('named', r.get('refused'))} "
-                  f"({r['seconds']:.1f} s)", flush=True)
+    for i, case in enumerate(cases):
+        runs = runs_of[i]
+        if not runs:
+            continue
+        n = len(runs)
         entry = summarise(case, runs)
-        entry["runs"] = runs
-        table.append(entry)
+        table.append({**entry, "runs": runs})
         label = f"{case.system}/{case.name}" + ("" if case.name == "null" else f" at {case.size}")
         if case.name != "null":
             rows.append(_schema.row(f"{label}: recall", "fraction", entry["recall"], better="higher",
@@ -238,12 +233,45 @@ def main() -> None:
         rows.append(_schema.row(f"{label}: false findings per recording", "count", entry["false_per_recording"],
                                 note=f"{n} seeds; no baseline"))
         rows.append(_schema.row(f"{label}: audit time per recording", "s", entry["audit_s_per_recording"],
-                                note="2 shared cores; no baseline"))
-        print(f"{label}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
-                                       for k, v in entry.items() if k not in ("runs", "system", "effect",
-                                                                              "planted_size")), flush=True)
-        _schema.write(args.json, "audit_catalog_recall", "audit", args.quick, time.perf_counter() - start, rows,
-                      {"seeds": n_effect, "null_seeds": n_null, "first_seed": args.first_seed, "cases": table})
+                                note=f"{args.jobs} parallel audits on 2 shared cores; no baseline"))
+        if final:
+            print(f"{label}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                                           for k, v in entry.items() if k not in ("system", "effect", "planted_size")),
+                  flush=True)
+    _schema.write(args.json, "audit_catalog_recall", "audit", args.quick, seconds, rows,
+                  {"seeds": n_effect, "null_seeds": n_null, "first_seed": args.first_seed, "jobs": args.jobs,
+                   "complete": final, "cases": table})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    _schema.add_arguments(parser, "audit_catalog_recall")
+    parser.add_argument("--seeds", type=int, default=None, help="recordings per planted effect (default 20)")
+    parser.add_argument("--null-seeds", type=int, default=None, help="null recordings per system (default 20)")
+    parser.add_argument("--first-seed", type=int, default=3000)
+    parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated subset of " + ",".join(SYSTEMS))
+    parser.add_argument("--cases", default="", help="comma-separated texts: only the cases whose effect name "
+                        "contains one of them (e.g. incl_bias,tracker_time_offset,null)")
+    parser.add_argument("--jobs", type=int, default=1, help="audits run in parallel processes (default 1)")
+    args = parser.parse_args()
+    n_effect = args.seeds or (2 if args.quick else _schema.DEFAULT_SEEDS)
+    n_null = args.null_seeds or (2 if args.quick else _schema.DEFAULT_SEEDS)
+    start = time.perf_counter()
+    wanted = [w for w in args.cases.split(",")]
+    cases = [c for c in CASES if c.system in args.systems.split(",") and any(w in c.name for w in wanted)]
+    plan = sorted(((i, seed) for i, c in enumerate(cases)  # seed by seed: an early stop leaves every case measured
+                   for seed in range(args.first_seed, args.first_seed + (n_null if c.name == "null" else n_effect))),
+                  key=lambda job: (job[1], job[0]))
+    runs_of = {i: [] for i in range(len(cases))}
+    with ProcessPoolExecutor(args.jobs) as pool:
+        done = pool.map(_run_planned, [(cases[i].system, cases[i].name, seed) for i, seed in plan])
+        for (i, seed), r in zip(plan, done):
+            runs_of[i].append(r)
+            print(f"  {cases[i].system}/{cases[i].name} seed {seed}: {r.get('named', r.get('refused'))} "
+                  f"({r['seconds']:.1f} s)", flush=True)
+            # written after every audit: a run stopped early keeps what it measured (seeds counted per case)
+            write_results(args, cases, runs_of, time.perf_counter() - start, n_effect, n_null, final=False)
+    write_results(args, cases, runs_of, time.perf_counter() - start, n_effect, n_null, final=True)
     print(f"total {time.perf_counter() - start:.0f} s; results: {args.json}")
 
 
