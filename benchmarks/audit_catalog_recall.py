@@ -159,11 +159,14 @@ def run_one(case: Case, seed: int) -> dict:
     t0 = time.perf_counter()
     try:
         system, planted, allowed = case.make(seed)
-        findings = run_audit(system).to_json()["findings"]
+        report = run_audit(system).to_json()
     except SelfcalError as err:  # a recording the audit refuses is counted, not a crash
         return {"seed": seed, "refused": str(err), "seconds": time.perf_counter() - t0}
-    out = {"seed": seed, "seconds": time.perf_counter() - t0, "named": [f"{f['effect']}@{f['target']}" for f in
-                                                                        findings]}
+    findings = report["findings"]
+    out = {"seed": seed, "seconds": time.perf_counter() - t0,
+           "named": [f"{f['effect']}@{f['target']}" for f in findings],
+           "rejected": [f"{r['effect']}@{r['target']}: {r['reason']} (p {r['evidence']['p_value']:.2g})"
+                        for r in report["rejected"]]}
     matched = set()
     for p in planted:
         hit = next((i for i, f in enumerate(findings) if _named(f, p)), None)
