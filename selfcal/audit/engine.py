@@ -11,8 +11,9 @@ catalog of candidate effects.  The engine is the same for every system:
    accepted only if it lowers the BIC AND the held-out residual (cross-validated over contiguous blocks in
    time: all families whitened - the whole held-out graph where the adapter solves one - and its own target
    family in physical units), so an effect must predict data it was not fitted to.  Of the catalog's
-   significant effects the one with the lowest BIC that passes goes in (rivals sharing a signature both have
-   p-values that underflow to 0); of the library's, the first in order of evidence.
+   significant effects, the first in order of evidence among those that fit about as well as the best
+   refitted one goes in (rivals sharing a signature both have p-values that underflow to 0); of the
+   library's, the first in order of evidence.
 3. Repeat until nothing significant is left.  No finding is a valid answer.
 4. When another candidate explains the data about as well as the accepted one (BIC within 6, "strong
    evidence" on Kass & Raftery's scale) and loses its own evidence once the accepted one is in, the finding
@@ -149,6 +150,11 @@ class Fit:
             if fam.quantity == quantity and (sensor is None or fam.sensor == sensor):
                 return fam
         return None
+
+
+def _misfit(fit: Fit) -> float:
+    """-2 log-likelihood of a fit up to a constant (the BIC without its parameter penalty): n ln(RSS / n)."""
+    return fit.n_obs * np.log(fit.rss / fit.n_obs)
 
 
 def variance_factor(fit: Fit) -> float:
@@ -518,8 +524,9 @@ class _Search:
         return max(library.effective_number(self._first_columns(generic)), 1.0)
 
     def step(self, candidates: list[Candidate], n_tests: float, phase: str):
-        """Score every candidate, refit the significant ones, accept one: in the catalog the one that predicts the
-        held-out data best (:meth:`best_catalog_effect`), in the library the first in order of evidence.
+        """Score every candidate, refit the significant ones, accept one: in the catalog the first in order of
+        evidence among those that fit about as well as the best (:meth:`best_catalog_effect`), in the library the
+        first in order of evidence.
 
         Returns True when one was accepted, False when none was, and in the library phase the catalog effect a
         term outdoes (the caller restarts the search without it).  A library step tries at most
@@ -547,22 +554,27 @@ class _Search:
         return True
 
     def best_catalog_effect(self, significant: list[Trial]):
-        """(trial, fit, held-out, delta BIC) of the significant catalog effect that explains the data best (the
-        lowest BIC once refitted) among those that also pass the held-out check; None if none does.
+        """(trial, fit, held-out, delta BIC) of the significant catalog effect to accept, or None.
 
         Every significant effect is refitted before one is chosen: effects sharing a signature (an inclinometer
-        bias and a prism lever arm both tilt what the tracker sees) can have evidence beyond what a p-value
-        resolves (both underflow to 0), and the first in order would be the catalog's order, not the better
-        explanation (measured: a (1.1, 4.2) mrad inclinometer bias was named a 13 cm lever-arm error, BIC 470
-        worse, and the bias then failed the held-out check next to it).  The held-out residuals of the two
-        differ by their noise there (7 in 3400), so the BIC ranks, and the cross-validation (the costly part)
-        runs in that order until one passes.  The rival left out is tested again on top of the chosen one."""
+        pitch bias and a prism lever arm's height both turn the camera's view of the tracker) can have evidence
+        beyond what a p-value resolves (both underflow to 0), and the first in order would be the catalog's
+        order, not the better explanation (measured: a (1.1, 4.2) mrad inclinometer bias was named a 13 cm
+        lever-arm error, whose fit is worse by 470 in -2 log-likelihood, and the bias then failed the held-out
+        check next to it).  So the order of evidence stands only among the effects that fit the data about as
+        well as the best one (-2 log-likelihood within ``AMBIGUITY_BIC``, strong evidence on Kass & Raftery's
+        scale: an effect that is not worse beyond what one parameter fits to noise); where two fit alike the
+        data cannot tell them apart, and the finding records the rival (``ambiguous_with``).  The cross-
+        validation (the costly part) runs in that order until one passes; the rival left out is tested again on
+        top of the chosen one."""
         refitted = []
         for trial in significant:
             self.progress(f"refitting and cross-validating with {trial.candidate.key}")
-            new_fit = self.system.fit(self.effects + (trial.candidate,))
-            refitted.append((new_fit.bic() - self.fit.bic(), trial, new_fit))
-        for _, trial, new_fit in sorted(refitted, key=lambda r: r[0]):
+            refitted.append((trial, self.system.fit(self.effects + (trial.candidate,))))
+        while refitted:
+            best = min(_misfit(fit) for _, fit in refitted)
+            trial, new_fit = next((t, f) for t, f in refitted if _misfit(f) <= best + AMBIGUITY_BIC)
+            refitted = [(t, f) for t, f in refitted if t is not trial]
             outcome = self.attempt(trial, new_fit)
             if not isinstance(outcome, Rejection):
                 return (trial, *outcome)
