@@ -7,13 +7,10 @@ catalog of candidate effects.  The engine is the same for every system:
 1. Evidence for each candidate is a score (Lagrange-multiplier) test on the linearised graph: the drop in
    whitened residual sum of squares that one Gauss–Newton step with the candidate's extra variables would
    give, as an F statistic against the residual variance.  It needs no refit, so every candidate is ranked.
-2. Candidates significant at ``alpha / m`` (Bonferroni over the m candidates still open) are refitted; one is
-   accepted only if it lowers the BIC AND the held-out residual (cross-validated over contiguous blocks in
-   time: all families whitened - the whole held-out graph where the adapter solves one - and its own target
-   family in physical units), so an effect must predict data it was not fitted to.  Of the catalog's
-   significant effects, the first in order of evidence among those that fit about as well as the best
-   refitted one goes in (rivals sharing a signature both have p-values that underflow to 0); of the
-   library's, the first in order of evidence.
+2. Candidates significant at ``alpha / m`` (Bonferroni over the m candidates still open) are refitted in
+   order of evidence; one is accepted only if it lowers the BIC AND the held-out residual (cross-validated
+   over contiguous blocks in time: all families whitened - the whole held-out graph where the adapter solves
+   one - and its own target family in physical units), so an effect must predict data it was not fitted to.
 3. Repeat until nothing significant is left.  No finding is a valid answer.
 4. When another candidate explains the data about as well as the accepted one (BIC within 6, "strong
    evidence" on Kass & Raftery's scale) and loses its own evidence once the accepted one is in, the finding
@@ -150,11 +147,6 @@ class Fit:
             if fam.quantity == quantity and (sensor is None or fam.sensor == sensor):
                 return fam
         return None
-
-
-def _misfit(fit: Fit) -> float:
-    """-2 log-likelihood of a fit up to a constant (the BIC without its parameter penalty): n ln(RSS / n)."""
-    return fit.n_obs * np.log(fit.rss / fit.n_obs)
 
 
 def variance_factor(fit: Fit) -> float:
@@ -524,9 +516,7 @@ class _Search:
         return max(library.effective_number(self._first_columns(generic)), 1.0)
 
     def step(self, candidates: list[Candidate], n_tests: float, phase: str):
-        """Score every candidate, refit the significant ones, accept one: in the catalog the first in order of
-        evidence among those that fit about as well as the best (:meth:`best_catalog_effect`), in the library the
-        first in order of evidence.
+        """Score every candidate, refit the significant ones in order of evidence, accept the first that passes.
 
         Returns True when one was accepted, False when none was, and in the library phase the catalog effect a
         term outdoes (the caller restarts the search without it).  A library step tries at most
@@ -538,10 +528,28 @@ class _Search:
         self.progress(f"step {len(self.history) + 1} ({phase}): {len(trials)} candidates, best "
                           f"{trials[0].candidate.key} p={trials[0].p_value:.3g}")
         significant = [t for t in trials if t.p_value < threshold]
-        if phase == "catalog":
-            accepted, outdone = self.best_catalog_effect(significant), None
-        else:
-            accepted, outdone = self.first_library_term(significant[:LIBRARY_ATTEMPTS])
+        if phase == "library":
+            significant = significant[:LIBRARY_ATTEMPTS]
+        accepted, outdone = None, None
+        for trial in significant:
+            if phase == "library" and self.nested_catalog(trial.candidate):
+                # a polynomial of a driver a catalog effect is linear in: tried in its place, not on top of it
+                outdone = self.outdone_catalog_effect(trial, self.nested_catalog(trial.candidate))
+                if outdone is not None:
+                    break
+                self.reject(trial, Rejection("heldout", {"in_place_of": [c.effect for c in
+                                                                        self.nested_catalog(trial.candidate)]}))
+                continue
+            outcome = self.attempt(trial)
+            if isinstance(outcome, Rejection):
+                self.reject(trial, outcome)
+                continue
+            # a term that pays on top of the model may still explain a catalog finding better than the finding
+            # does (a quadratic where a linear catalog effect took the slope): then the finding goes instead
+            outdone = self.outdone_catalog_effect(trial) if phase == "library" else None
+            if outdone is None:
+                accepted = (trial, *outcome)
+            break
         self.history.append({"step": len(self.history) + 1, "phase": phase, "threshold": threshold,
                              "trials": [{"candidate": t.candidate.key, "F": t.f_stat, "p_value": t.p_value}
                                         for t in trials],
@@ -552,56 +560,6 @@ class _Search:
             return False
         self.accept(*accepted, trials, threshold)
         return True
-
-    def best_catalog_effect(self, significant: list[Trial]):
-        """(trial, fit, held-out, delta BIC) of the significant catalog effect to accept, or None.
-
-        Every significant effect is refitted before one is chosen: effects sharing a signature (an inclinometer
-        pitch bias and a prism lever arm's height both turn the camera's view of the tracker) can have evidence
-        beyond what a p-value resolves (both underflow to 0), and the first in order would be the catalog's
-        order, not the better explanation (measured: a (1.1, 4.2) mrad inclinometer bias was named a 13 cm
-        lever-arm error, whose fit is worse by 470 in -2 log-likelihood, and the bias then failed the held-out
-        check next to it).  So the order of evidence stands only among the effects that fit the data about as
-        well as the best one (-2 log-likelihood within ``AMBIGUITY_BIC``, strong evidence on Kass & Raftery's
-        scale: an effect that is not worse beyond what one parameter fits to noise); where two fit alike the
-        data cannot tell them apart, and the finding records the rival (``ambiguous_with``).  The cross-
-        validation (the costly part) runs in that order until one passes; the rival left out is tested again on
-        top of the chosen one."""
-        refitted = []
-        for trial in significant:
-            self.progress(f"refitting and cross-validating with {trial.candidate.key}")
-            refitted.append((trial, self.system.fit(self.effects + (trial.candidate,))))
-        while refitted:
-            best = min(_misfit(fit) for _, fit in refitted)
-            trial, new_fit = next((t, f) for t, f in refitted if _misfit(f) <= best + AMBIGUITY_BIC)
-            refitted = [(t, f) for t, f in refitted if t is not trial]
-            outcome = self.attempt(trial, new_fit)
-            if not isinstance(outcome, Rejection):
-                return (trial, *outcome)
-            self.reject(trial, outcome)
-        return None
-
-    def first_library_term(self, significant: list[Trial]):
-        """(accepted, outdone) of a library step: the first significant term (strongest evidence first) that
-        passes :meth:`attempt`, unless it outdoes a catalog finding (then that finding, and nothing accepted)."""
-        for trial in significant:
-            if self.nested_catalog(trial.candidate):
-                # a polynomial of a driver a catalog effect is linear in: tried in its place, not on top of it
-                outdone = self.outdone_catalog_effect(trial, self.nested_catalog(trial.candidate))
-                if outdone is not None:
-                    return None, outdone
-                self.reject(trial, Rejection("heldout", {"in_place_of": [c.effect for c in
-                                                                        self.nested_catalog(trial.candidate)]}))
-                continue
-            outcome = self.attempt(trial)
-            if isinstance(outcome, Rejection):
-                self.reject(trial, outcome)
-                continue
-            # a term that pays on top of the model may still explain a catalog finding better than the finding
-            # does (a quadratic where a linear catalog effect took the slope): then the finding goes instead
-            outdone = self.outdone_catalog_effect(trial)
-            return (None, outdone) if outdone is not None else ((trial, *outcome), None)
-        return None, None
 
     def score(self, candidate: Candidate, fit: Fit) -> Trial:
         """Score test of one candidate against ``fit``, corrected for residuals correlated in time (a library
@@ -636,20 +594,16 @@ class _Search:
         hook = getattr(self.system, "residual_correlation", None)
         return hook(fit) if hook else 1.0
 
-    def attempt(self, trial: Trial, new_fit: Fit | None = None):
-        """(fit, held-out, delta BIC) of the model with the candidate, or the :class:`Rejection` saying why not
-        (``new_fit``: the model with the candidate, where already refitted)."""
+    def attempt(self, trial: Trial):
+        """(fit, held-out, delta BIC) of the model with the candidate, or the :class:`Rejection` saying why not."""
         cand = trial.candidate
         new_effects = self.effects + (cand,)
-        if new_fit is None:
-            self.progress(f"refitting and cross-validating with {cand.key}")
-            new_fit = self.system.fit(new_effects)
+        self.progress(f"refitting and cross-validating with {cand.key}")
+        new_fit = self.system.fit(new_effects)
         new_held = _heldout(self.system, new_effects)
         delta_bic = new_fit.bic() - self.fit.bic()
-        log.info("%s: F=%.3g p=%.3g dBIC=%.1f heldout %.4g -> %.4g (by family %s -> %s)", cand.key, trial.f_stat,
-                 trial.p_value, delta_bic, self.held.rss, new_held.rss,
-                 {k: round(v, 1) for k, v in self.held.rss_by_label.items()},
-                 {k: round(v, 1) for k, v in new_held.rss_by_label.items()})
+        log.info("%s: F=%.3g p=%.3g dBIC=%.1f heldout %.4g -> %.4g", cand.key, trial.f_stat, trial.p_value,
+                 delta_bic, self.held.rss, new_held.rss)
         measured = {"delta_bic": delta_bic, "heldout_rss_before": self.held.rss, "heldout_rss_after": new_held.rss}
         if delta_bic >= 0:
             return Rejection("bic", measured)
