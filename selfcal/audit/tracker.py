@@ -533,11 +533,18 @@ class TrackerAudit:
             groups.append([(key, np.arange(dim)) for key, dim in keys])
         return graph, values, groups
 
-    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+    def heldout_fit(self, fit: Fit, fold: int) -> Fit:
+        """The other half solved with ``fit``'s effect values fixed (generic terms as trained): its whole graph (IMU
+        factors included) and its residual families, for the engine's held-out comparison."""
         other = 1 - fold
         fixed = {c.effect: fit.values.atVector(EFFECTS[c.effect].key) for c in fit.effects if c.term is None}
         graph, values = self._build(fit.effects, other, fixed=fixed, known=fit.values)
-        return self._families(graph, gauss_newton(graph, values), other, fixed, fit.effects, fit.values)
+        values = gauss_newton(graph, values)
+        return Fit(tuple(fit.effects), graph, values,
+                   self._families(graph, values, other, fixed, fit.effects, fit.values), {"fold": other})
+
+    def heldout(self, fit: Fit, fold: int) -> list[ResidualFamily]:
+        return self.heldout_fit(fit, fold).families
 
     def _families(self, graph, values, part, fixed: dict | None = None, effects=(),
                   known=None) -> list[ResidualFamily]:
