@@ -75,7 +75,7 @@ def test_sphere_radius_growing_with_range_is_unlisted_in_range_not_a_gyro_scale(
 
 
 STEP_M = 1e-3  # the apparent radius jumps by 1 mm (half a pixel's footprint at 2 m, f = 1000 px) half-way through the
-# run; the sigma the audit reports for a radius common to all spheres is 0.06 mm, for a step about twice that
+# run; the sigma the audit reports for the step on this 6-sphere scan is 0.061 mm (16 sigma)
 
 
 @pytest.mark.slow  # 6 spheres: ~110 s of CPU (6 min wall on the shared machine)
