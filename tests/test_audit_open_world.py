@@ -270,3 +270,33 @@ def test_the_harmonic_of_time_at_the_periodogram_peak_is_corrected_for_the_searc
         corrected += term.search_corrected(p) < 0.05
     assert raw >= 150, raw
     assert corrected <= 27, corrected
+# --- 7. the pair: imu1's gyro scale drifting with its temperature (a look-alike of gyro_relative_gain) ----------
+
+GYRO1_SCALE_PER_DEGC = 1.5e-4  # relative, per degC, imu1's x gyro: a MEMS gyro's sensitivity tempco (~2 % over
+# 125 K); the measured sigma of the product's coefficient is 9.4e-6 per degC on this 40 s log (seed 0: 16 sigma)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pair_gyro_scale_drifting_with_temperature_is_a_product_of_imu1_rate_and_temperature(seed):
+    """imu1's x gyro reads ``w_x (1 + k (T - 25))`` while the temperature cycles 25 -> 35 -> 15 -> 25 degC: its mean
+    scale error is zero, so the catalog's constant ``gyro_relative_gain`` (the look-alike) must not be named, nor a
+    clock offset; the term is imu1's ``w_x`` times ``temperature``.  In the pair residual (imu0's axes) the error is
+    ``-R e_x k (T - 25) w_x``: the product's coefficient vector is ``-k R[:, 0]``, within 3 reported sigma."""
+    from dataclasses import replace
+    from test_audit_hidden_effects import pair_scenario
+    from selfcal.audit.imu_pair import ImuPairAudit
+    scenario = replace(pair_scenario(seed), temperature=warm_and_cold(40.0))
+    rec = scenario.perturbed_measurements(seed)
+    values = rec.sensors["imu1"].values
+    rate_x = values["w_RS_S_x"] - scenario.gyro1.bias[0]  # imu1 has no scale or misalignment error here
+    values["w_RS_S_x"] = values["w_RS_S_x"] + GYRO1_SCALE_PER_DEGC * (values["temperature"] - 25.0) * rate_x
+    result = run_audit(ImuPairAudit(rec.imu("imu0"), rec.imu("imu1")))
+    found = unlisted(result.findings, "imu1/pair_gyro")
+    assert (found["driver"], found["second_driver"], found["form"]) == ("w_x", "temperature", "product"), \
+        names(result.findings)
+    assert not [f for f in result.findings if f["effect"] in ("gyro_relative_gain", "time_offset")], \
+        names(result.findings)
+    assert abs(found["estimate"]["x0"][1] - 25.0) < 1.0  # the cycle's mid-range: no constant scale left over
+    within(found["estimate"]["coefficient"], found["std"]["coefficient"],
+           -GYRO1_SCALE_PER_DEGC * scenario.R_imu0_imu1[:, 0], "scale drift per degC in imu0's axes")
+    assert_pays(found)

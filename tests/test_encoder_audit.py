@@ -95,3 +95,37 @@ def test_compressive_diode_response_is_unlisted_quadratic_in_signal(seed):
     quadratic, sigma = f["estimate"]["coefficients"][1][0], f["std"]["coefficients"][1][0]
     assert abs(quadratic - (-c / sc.adc_max)) < 3 * sigma, (quadratic, sigma, -c / sc.adc_max)
     assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]
+
+
+def shuffled_positions(n: int, seed: int) -> np.ndarray:
+    """A revolution's positions visited in random order: the disk angle is then not collinear with the frame index,
+    along which the temperature ramps (in order, a temperature term and a position term would be one)."""
+    rng = np.random.default_rng([seed, 5])
+    return (rng.permutation(n) + rng.uniform(-0.25, 0.25, n)) * 2 * np.pi / n
+
+
+# 0.5 counts per degC: a 12-bit array's dark level (dark current and ADC offset) drifting by 4 counts over the 8.5 K
+# the TINY run spans.  Measured sigma of the slope: 0.039 counts/degC (seeds 16, 17: 13 sigma from zero).
+A0_PER_DEGC = 0.5
+
+
+@pytest.mark.parametrize("seed", [16, 17])
+def test_dark_level_drifting_with_temperature_is_unlisted_linear_in_temperature_not_a_temperature_scale(seed):
+    """The dark level rises with temperature: ``a0 + k (T - 25)``, k = 0.5 counts/degC; no catalog entry.  A
+    look-alike of ``temperature_scale`` (same driver, an image scale ``p`` instead of an offset): it must not be
+    named, nor PRNU or eccentricity.  The library's offset linear in ``temperature`` is exactly the drift (its
+    constant goes to the base's ``a0``), so its slope is within 3 reported sigma of k."""
+    positions = shuffled_positions(TINY["n_positions"], seed)
+    sc = EncoderScenario(seed=seed, a0_per_degC=A0_PER_DEGC, temperature_range_degC=10.0, positions_rad=positions,
+                         **TINY)
+    _, out = audit(sc)
+    assert [(f["effect"], f.get("driver")) for f in out["findings"]] == [("unlisted", "temperature")], \
+        out["findings"]
+    f = out["findings"][0]
+    assert f["form"] in ("poly1", "poly2", "poly3"), f["form"]
+    # coefficients of (T - x0)^j: the slope is k, any higher power of a straight line is zero
+    truth = [A0_PER_DEGC] + [0.0] * (len(f["estimate"]["coefficients"]) - 1)
+    for j, (c, sigma) in enumerate(zip(f["estimate"]["coefficients"], f["std"]["coefficients"])):
+        assert abs(c[0] - truth[j]) < 3 * sigma[0], (f["form"], j + 1, c[0], sigma[0], truth[j])
+    assert f["gain"]["rms_after"] < f["gain"]["rms_before"]
+    assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]

@@ -5,6 +5,7 @@ import pytest
 
 from selfcal.audit.engine import run_audit
 from selfcal.audit.scan import ScanAudit
+from selfcal.audit.terms import step_locations
 from scan_helpers import scan_data
 from selfcal.pipelines.scan import scan_problem
 from selfcal.sim.scan import ScanScenario, simulate_scan
@@ -71,3 +72,33 @@ def test_sphere_radius_growing_with_range_is_unlisted_in_range_not_a_gyro_scale(
     if radius:
         expected = slope * (term[0]["estimate"]["x0"] - np.mean(ScanScenario().sphere_range_m))
         assert abs(radius[0]["estimate"]["dR_m"] - expected) < 3 * radius[0]["std"]["dR_m"]
+
+
+STEP_M = 1e-3  # the apparent radius jumps by 1 mm (half a pixel's footprint at 2 m, f = 1000 px) half-way through the
+# run; the sigma the audit reports for the step on this 6-sphere scan is 0.061 mm (16 sigma)
+
+
+@pytest.mark.slow  # 6 spheres: ~110 s of CPU (6 min wall on the shared machine)
+def test_apparent_radius_jumping_half_way_is_a_step_in_time_not_a_sphere_radius(tmp_path):
+    """Half-way through the run every sphere looks 1 mm bigger (an exposure change blooming bright surfaces): no
+    catalog entry.  Its mean over the run looks like ``sphere_radius`` (the look-alike), which must not be named
+    with a size (if kept, it is the level before the step: zero within 3 sigma); the term is a step in ``time``
+    at the change point tried nearest the true jump, its size within 3 sigma of 1 mm.  6 spheres (with 4, two per
+    fold, the audit named sphere_radius 0.54 +- 0.06 mm and a speed x time product: the step was not reached)."""
+    sim = simulate_scan(ScanScenario(length_m=8.0, n_spheres=6, sphere_radius_step_m=STEP_M), seed=11)
+    result = run_audit(ScanAudit(scan_problem(scan_data(sim))))
+    findings = result.to_json()["findings"]
+    assert set(f["effect"] for f in findings) <= {"sphere_radius", "unlisted"}, findings
+    term = [f for f in findings if f["effect"] == "unlisted"]
+    assert [(f["driver"], f["form"]) for f in term] == [("time", "step")], term
+    step, sigma = term[0]["estimate"]["step"][0], term[0]["std"]["step"][0]
+    assert abs(step - STEP_M) < 3 * sigma, (step, sigma)
+    # the place: the library tries at most 25 change points evenly among the clocks' times, not every gap between
+    # spheres, so the step is at one of the two tried points that bracket the true jump
+    tried = np.array(step_locations(result.final_fit.family("sphere").coordinates["time_s"]))
+    true_at_s = 0.5 * (sim.ins_t_s[-1] - sim.ins_t_s[0])
+    bracket = [tried[tried <= true_at_s].max(initial=-np.inf), tried[tried > true_at_s].min(initial=np.inf)]
+    assert term[0]["estimate"]["at"] in bracket, (term[0]["estimate"]["at"], true_at_s, bracket)
+    radius = [f for f in findings if f["effect"] == "sphere_radius"]
+    if radius:
+        assert abs(radius[0]["estimate"]["dR_m"]) < 3 * radius[0]["std"]["dR_m"], radius

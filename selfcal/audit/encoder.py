@@ -96,7 +96,9 @@ class EncoderAudit:
 
     def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
         units = {"signal": "counts", "diode": "", "position": "rad", "temperature": "degC"}
-        kinds = {"signal": "state", "diode": "state", "position": "angle", "temperature": "channel"}
+        # the signal is a "level": its gain drifting with temperature is the per-frame illumination of the base, so
+        # a product signal x temperature would only be a dark-level drift (a0 (T - T0)) in a misleading unit
+        kinds = {"signal": "level", "diode": "state", "position": "angle", "temperature": "channel"}
         return {(self.problem.arrays[k].name, "signal"): [Coordinate(n, v, units[n], kinds[n]) for n, v in d.items()]
                 for k, d in self._drivers.items()}
 

@@ -10,8 +10,8 @@ Residual families: ``pair_gyro`` (rad s^-1) and ``pair_accel`` (m s^-2) per movi
 
 Generic terms (:mod:`selfcal.audit.terms`): the relative gyro or accelerometer offset varying as a function of
 one driver of the moving samples (time; imu1's own rate ``w_x w_y w_z``, its norm ``w_norm`` and specific force
-``f_x f_y f_z``, in imu1's axes: the audited sensor is imu1), fitted in the pair factors as offset channels; the
-static pairs keep the constant offset.
+``f_x f_y f_z``, in imu1's axes: the audited sensor is imu1; imu1's auxiliary channels such as ``temperature``),
+fitted in the pair factors as offset channels; the static pairs keep the constant offset.
 """
 from __future__ import annotations
 
@@ -82,6 +82,12 @@ class ImuPairAudit:
         w1, f1 = d.gyro1.at(d.t0_s - self.initial_dt_s)[0], d.accel1.at(d.t0_s - self.initial_dt_s)[0]
         self._drivers = {"time": d.t0_s, **{f"w_{a}": w1[:, j] for j, a in enumerate("xyz")},
                          "w_norm": np.linalg.norm(w1, axis=1), **{f"f_{a}": f1[:, j] for j, a in enumerate("xyz")}}
+        # imu1's auxiliary channels (temperature, ...) at the same instants: drivers of their own and the second
+        # factor of products (a scale of imu1 drifting with its temperature is w_x x temperature)
+        t1 = (d1.t_ns - d0.t_ns[0]) * 1e-9
+        self._channel_units = {n: d1.channel_units.get(n, "") for n in d1.channels if n not in self._drivers}
+        for name in self._channel_units:
+            self._drivers[name] = np.interp(d.t0_s - self.initial_dt_s, t1, np.asarray(d1.channels[name], float))
         half = 0.5 * (self.dynamic.t0_s[0] + self.dynamic.t0_s[-1])
         self._halves = [self.dynamic.t0_s < half, self.dynamic.t0_s >= half]
         self.scale = {g: 1.0 for g in gp.GROUPS}
@@ -127,7 +133,9 @@ class ImuPairAudit:
     def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
         units = {"time": "s", "w_norm": "rad s^-1", **{f"w_{a}": "rad s^-1" for a in "xyz"},
                  **{f"f_{a}": "m s^-2" for a in "xyz"}}
-        coordinates = [Coordinate(n, v, units[n], "time" if n == "time" else "state") for n, v in self._drivers.items()]
+        kinds = {"time": "time", **{n: "channel" for n in self._channel_units}}
+        units.update(self._channel_units)
+        coordinates = [Coordinate(n, v, units[n], kinds.get(n, "state")) for n, v in self._drivers.items()]
         return {(self.imu1, "pair_gyro"): coordinates, (self.imu1, "pair_accel"): coordinates}
 
     @staticmethod

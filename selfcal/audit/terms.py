@@ -56,7 +56,8 @@ class Coordinate:
     name: str
     values: np.ndarray
     unit: str = ""
-    kind: str = "state"  # "time", "channel" (an auxiliary column), "state" (a quantity of the system), "angle"
+    kind: str = "state"  # "time", "channel" (an auxiliary column), "state" (a quantity of the system), "angle",
+    # "level" (a state offered in polynomials only: its products with a channel are a drifting gain the base has)
     solo: bool = True  # False: offered only as the second factor of products (its own terms live elsewhere)
 
     @property

@@ -29,7 +29,9 @@ approximates (second order).  The INS output poses carry white jitter (``ins_jit
 
 Hidden effects (for the audit): ``time_offset_s`` (a clock stamped ``t`` on the camera clock happened at INS
 time ``t + dt``), ``extrinsic_rotation_rad`` (true ``R_IV = R_IV,cal Exp(eps)``), ``sphere_radius_error_m``
-(true radius = nominal + dR), ``accel_scale``, ``gyro_scale``.
+(true radius = nominal + dR), ``accel_scale``, ``gyro_scale``; outside the audit's catalog:
+``sphere_radius_per_range`` (apparent radius growing with range), ``sphere_radius_step_m`` (apparent radius jumping
+at a fraction ``sphere_radius_step_at`` of the run), ``disparity_offset_px`` (a stereo matching bias).
 
 Recording (written by :func:`write_scan_recording`)
 ---------------------------------------------------
@@ -138,6 +140,9 @@ class ScanScenario:
     # (not in the audit's catalog; as a beam footprint or a matcher's window growing with range would do)
     disparity_offset_px: float = 0.0  # a matching bias of the right camera (not in the audit's catalog): depth
     # error ~ z^2 d / (f B), every sphere scaled about the sensor by a factor growing with its range
+    sphere_radius_step_m: float = 0.0  # apparent radius jumping by this much at ``sphere_radius_step_at`` of the
+    # run's duration (not in the audit's catalog; as an auto-exposure change that blooms bright surfaces would do)
+    sphere_radius_step_at: float = 0.5
     accel_scale: np.ndarray = field(default_factory=lambda: np.zeros(3))
     gyro_scale: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -333,7 +338,8 @@ def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0, spheres_o
     P_left = np.hstack([np.eye(3), np.zeros((3, 1))])
     P_right = np.hstack([right_R_left, right_t_left[:, None]])
     points_V, labels = [], []
-    for R_WI, r_WI in zip(true_R_c, true_r_c):
+    step_at_s = t[0] + sc.sphere_radius_step_at * (t[-1] - t[0])
+    for t_c, R_WI, r_WI in zip(t[clock_idx], true_R_c, true_r_c):
         R_WV = R_WI @ true_R_IV
         o_W = R_WI @ imu_t_vision + r_WI
         d_W = dir_V @ R_WV.T
@@ -346,10 +352,11 @@ def simulate_scan(scenario: ScanScenario | None = None, seed: int = 0, spheres_o
         X_W = o_W + d_W[ok] * tl[ok][:, None]
         lab = lab[ok]
         X_V = (X_W - o_W) @ R_WV  # exact point in the vision frame
-        if sc.sphere_radius_per_range and np.any(lab >= 0):
+        if (sc.sphere_radius_per_range or sc.sphere_radius_step_m) and np.any(lab >= 0):
             on = lab >= 0
             c_V = (centers[lab[on]] - o_W) @ R_WV
-            grow = sc.sphere_radius_per_range * (np.linalg.norm(c_V, axis=1) - np.mean(sc.sphere_range_m))
+            grow = (sc.sphere_radius_per_range * (np.linalg.norm(c_V, axis=1) - np.mean(sc.sphere_range_m))
+                    + (sc.sphere_radius_step_m if t_c >= step_at_s else 0.0))
             X_V[on] = c_V + (X_V[on] - c_V) * (1.0 + grow / radius_true)[:, None]
             X_W = o_W + X_V @ R_WV.T
         # right camera: in front, in the field, and not occluded
