@@ -31,6 +31,10 @@ class StationingScenario:
     gravity_m_s2: float = 9.8077
     prism_sigma_m: float = 0.75e-3
     accel_sigma_m_s2: float = 4.3610059e-4
+    # effects outside the model (for the audit's tests; zero: the model's own world)
+    range_error_per_m: float = 0.0  # the total station reads every distance (1 + k) too long (a scale error)
+    base_rock_rad_per_m: float = 0.0  # the base accelerometer tilts about the tip's y axis by k * (arm x reach)
+    column_bias_harmonic_m_s2: float = 0.0  # column accelerometer x bias A sin(arm angle) (a cable's pull)
 
     def __post_init__(self):
         rng = np.random.default_rng(self.seed)
@@ -68,7 +72,12 @@ class StationingScenario:
                                           self.column_height[idx], self.pivot_fraction)[0]
             accel_col[idx] = specific_force_A(self.station_R[s], self.tilt_rad[idx], self.R_T_Acol,
                                               np.full(idx.sum(), self.gravity_m_s2))[0]
-        accel_base = specific_force_A(self.W_T_B[0], np.zeros((n, 2)), self.R_B_Abase, np.full(n, self.gravity_m_s2))[0]
+        # the base rocks under the arm's moment: a tilt about y in proportion to the tool's x reach
+        rock = np.column_stack([np.zeros(n), self.base_rock_rad_per_m * self.t_T_tool[:, 0]])
+        accel_base = specific_force_A(self.W_T_B[0], rock, self.R_B_Abase, np.full(n, self.gravity_m_s2))[0]
+        prism = prism * (1.0 + self.range_error_per_m)  # the total station sits at the origin of W
+        arm_angle = np.arctan2(self.t_T_tool[:, 1], self.t_T_tool[:, 0])
+        accel_col[:, 0] += self.column_bias_harmonic_m_s2 * np.sin(arm_angle)
         return {"prism_W": prism, "accel_column": accel_col, "accel_base": accel_base}
 
     def perturbed(self, seed) -> dict:
