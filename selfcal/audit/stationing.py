@@ -241,7 +241,7 @@ class StationingAudit:
         with the graph's bend prior), everything else held from ``fit``; its three families predicted."""
         rows = np.flatnonzero(~self._rows(fold))
         tilt = np.zeros((len(rows), 2))
-        prior = gs.StationingSigmas().tilt_prior_rad
+        prior = self._sigmas.tilt_prior_rad
         for _ in range(HELDOUT_ITERATIONS):
             predicted, H = self._predict(fit.values, fit.effects, rows, tilt, jacobians=True)
             r = np.concatenate([(predicted["prism"] - self.g.prism_W[rows]) / self.sigma["prism"],
