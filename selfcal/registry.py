@@ -62,7 +62,8 @@ SYSTEMS: tuple[System, ...] = (
            patent="003_5cbcad933271d834.txt", audit=("attitude",), online=True),
     System("tracker", "laser tracker + inclinometer + beam camera + IMU, fault-gated 6-DoF pose",
            patent="004_ebbf7d44e5184b68.txt", audit=("smoother",), online=True),
-    System("stationing", "prism lever arm, column bend and tilt-sensor mountings from total-station stationing"),
+    System("stationing", "prism lever arm, column bend and tilt-sensor mountings from total-station stationing",
+           audit=("bend",)),
 )
 
 

@@ -13,6 +13,7 @@ DATASET_KINDS = {  # the public datasets of selfcal.io.importers.IMPORTERS (kept
     "sunsided-mpu6050": "one scenario of sunsided/sensor-fusion set 2 (folder with mpu6050.csv.gz)",
     "adis16405-static": "one ADIS16405 static run of imudata (.npz)",
     "spherecalib-lidar": "the SphereCalib LiDAR scans (folder with L1_S<i>.xyz.gz)",
+    "hilti-stationing": "one Hilti stationing dataset (<condition>.yaml, trailblazer.urdf beside it)",
 }
 
 

@@ -57,6 +57,7 @@ class StationingSigmas:
 
     prism_m: float = 0.75e-3
     accel_m_s2: float = 4.3610059e-4
+    base_accel_m_s2: float | None = None  # the base accelerometer's, where it differs (None: accel_m_s2)
     tilt_prior_rad: float = 0.01  # column bend per waypoint: weak, the column accelerometer fixes it
     lean_sigma_rad: float = 0.01  # column tip vs base at a station: URDF nominal +- this
     lean_sigma_m: float = 0.01
@@ -111,6 +112,18 @@ def _kabsch(P, Q):
     return R, qm - R @ pm
 
 
+def _value(values: gtsam.Values, key: int):
+    """The value of ``key`` whatever its type (the graph holds poses, rotations, points and vectors)."""
+    char = chr(gtsam.Symbol(key).chr())
+    if char in "bs":
+        return values.atPose3(key)
+    if char in "mn":
+        return values.atRot3(key)
+    if char == "p":
+        return values.atPoint3(key)
+    return values.atVector(key)
+
+
 @dataclass
 class StationingFit:
     values: gtsam.Values
@@ -158,29 +171,13 @@ class StationingFit:
         return col, base
 
 
-def fit_stationing(files: list[FileGeometry], prism_points: list[np.ndarray], initial: Calibration,
-                   estimate: bool = True, use_tilt: bool = True, sigmas: StationingSigmas | None = None,
-                   marginals: bool = True, rezero: bool = False) -> StationingFit:
-    """Build and solve the stationing graph.
-
-    Parameters
-    ----------
-    files : list of FileGeometry
-    prism_points : list of (N,) bool
-        Per file, which waypoints' prism positions enter the graph (the rest are held out).
-    initial : Calibration
-        Starting values; with ``estimate=False`` they are held fixed (held-out stationing with a calibration).
-    use_tilt : bool
-        Column tilt per waypoint from the column accelerometer (the library's model); False: rigid stations
-        from the prism alone (the baseline, as the dataset's own Kabsch example).
-    rezero : bool
-        With ``estimate=False``: re-estimate the accelerometers' zero (mounting roll and pitch, which hold the
-        horizontal bias) at this site, keeping their yaw, the lever arm and the pivot.  An ADXL355's zero moves
-        with temperature (datasheet: up to 0.15 mg/K, i.e. ~1.5e-4 rad/K of apparent tilt), so a site's
-        stationing re-zeroes the tilt sensors as a levelled instrument would; the accelerometers then carry the
-        column's *bend* between waypoints, the prism positions the station's attitude.
-    """
+def stationing_graph(files: list[FileGeometry], prism_points: list[np.ndarray], initial: Calibration,
+                     estimate: bool = True, use_tilt: bool = True, sigmas: StationingSigmas | None = None,
+                     rezero: bool = False, waypoints: list[np.ndarray] | None = None,
+                     corrections: list[dict] | None = None, start: gtsam.Values | None = None):
+    """The graph of :func:`fit_stationing` and its starting values, unsolved: ``(graph, values)``."""
     sig = sigmas or StationingSigmas()
+    base_sigma = sig.base_accel_m_s2 or sig.accel_m_s2
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     fixed = gtsam.noiseModel.Isotropic.Sigma
@@ -206,8 +203,16 @@ def fit_stationing(files: list[FileGeometry], prism_points: list[np.ndarray], in
     lean = gtsam.noiseModel.Diagonal.Sigmas(np.array([sig.lean_sigma_rad] * 3 + [sig.lean_sigma_m] * 3))
     tilt_prior = fixed(2, sig.tilt_prior_rad)
     for f, (g, use) in enumerate(zip(files, prism_points)):
+        rows = np.ones(len(g.station), bool) if waypoints is None else np.asarray(waypoints[f], bool)
+        terms = (corrections[f] if corrections is not None else None) or {}
+        for key, _ in [c for family in terms.values() for c in family]:
+            if not values.exists(key):
+                values.insert(key, np.zeros(3))
+
+        def sub(family, idx):
+            return [(key, M[idx]) for key, M in terms.get(family, ())]
         for s, h in enumerate(g.heights):
-            idx = np.flatnonzero(g.station == s)
+            idx = np.flatnonzero((g.station == s) & rows)
             used = idx[use[idx]]
             if len(used) < 3:
                 raise DegenerateDataError(f"{g.name}: column height {h} m has {len(used)} prism points; a station "
@@ -221,17 +226,57 @@ def fit_stationing(files: list[FileGeometry], prism_points: list[np.ndarray], in
                     values.insert(tilt_key(f, i), np.zeros(2))
                     graph.add(gtsam.PriorFactorVector(tilt_key(f, i), np.zeros(2), tilt_prior))
                 graph.add(accel_block_factor(fixed(3 * len(idx), sig.accel_m_s2), station_key(f, s), tilts,
-                                             MOUNT_COLUMN, g.accel_column[idx]))
+                                             MOUNT_COLUMN, g.accel_column[idx], sub("accel_column", idx)))
             used_tilts = [tilt_key(f, i) for i in used] if use_tilt else None
             graph.add(prism_block_factor(fixed(3 * len(used), sig.prism_m), station_key(f, s), used_tilts, PRISM,
                                          PIVOT, g.R_T_tool[used], g.t_T_tool[used], g.column_height[used],
-                                         g.prism_W[used]))
+                                         g.prism_W[used], sub("prism", used)))
             graph.add(gtsam.BetweenFactorPose3(base_key(f), station_key(f, s),
                                                gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, h])), lean))
         first = values.atPose3(station_key(f, 0))
         values.insert(base_key(f), first.compose(gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, -g.heights[0]]))))
-        graph.add(accel_block_factor(fixed(3 * len(g.accel_base), sig.accel_m_s2), base_key(f), None, MOUNT_BASE,
-                                     g.accel_base))
+        base_rows = np.flatnonzero(rows)
+        graph.add(accel_block_factor(fixed(3 * len(base_rows), base_sigma), base_key(f), None, MOUNT_BASE,
+                                     g.accel_base[base_rows], sub("accel_base", base_rows)))
+    if start is not None:
+        for key in values.keys():
+            if start.exists(key):
+                values.update(key, _value(start, key))
+    return graph, values
+
+
+def fit_stationing(files: list[FileGeometry], prism_points: list[np.ndarray], initial: Calibration,
+                   estimate: bool = True, use_tilt: bool = True, sigmas: StationingSigmas | None = None,
+                   marginals: bool = True, rezero: bool = False, waypoints: list[np.ndarray] | None = None,
+                   corrections: list[dict] | None = None, start: gtsam.Values | None = None) -> StationingFit:
+    """Build and solve the stationing graph.
+
+    Parameters
+    ----------
+    files : list of FileGeometry
+    prism_points : list of (N,) bool
+        Per file, which waypoints' prism positions enter the graph (the rest are held out).
+    initial : Calibration
+        Starting values; with ``estimate=False`` they are held fixed (held-out stationing with a calibration).
+    use_tilt : bool
+        Column tilt per waypoint from the column accelerometer (the library's model); False: rigid stations
+        from the prism alone (the baseline, as the dataset's own Kabsch example).
+    rezero : bool
+        With ``estimate=False``: re-estimate the accelerometers' zero (mounting roll and pitch, which hold the
+        horizontal bias) at this site, keeping their yaw, the lever arm and the pivot.  An ADXL355's zero moves
+        with temperature (datasheet: up to 0.15 mg/K, i.e. ~1.5e-4 rad/K of apparent tilt), so a site's
+        stationing re-zeroes the tilt sensors as a levelled instrument would; the accelerometers then carry the
+        column's *bend* between waypoints, the prism positions the station's attitude.
+    waypoints : list of (N,) bool, optional
+        Per file, the waypoints that enter the graph at all (every factor; default all): the audit's folds.
+    corrections : list of dict, optional
+        Per file, ``{"prism" | "accel_column" | "accel_base": [(key, M (N, 3, 3)), ...]}``: generic corrections
+        ``M[i] c`` added to the predictions (:mod:`selfcal.factors.stationing`); their keys start at zero.
+    start : gtsam.Values, optional
+        Starting values for the keys it holds (a previous fit: fewer iterations).
+    """
+    graph, values = stationing_graph(files, prism_points, initial, estimate, use_tilt, sigmas, rezero, waypoints,
+                                     corrections, start)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     params.setRelativeErrorTol(1e-10)

@@ -17,6 +17,7 @@ import numpy as np
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.io.imu_table import counts_to_si, import_imu_table, raw_counts_meta
 from selfcal.io.recording import Recording, RecordingError, SensorData, imu_sensor
+from selfcal.io.stationing import import_hilti_stationing
 
 
 # Kalibr's keys: white-noise densities in m s^-2 Hz^-1/2 and rad s^-1 Hz^-1/2, bias random walks in
@@ -475,6 +476,7 @@ def import_spherecalib_lidar(src_dir) -> Recording:
 
 IMPORTERS = {
     "spherecalib-lidar": import_spherecalib_lidar,
+    "hilti-stationing": import_hilti_stationing,
     "adis16405-static": import_adis16405_static,
     "sunsided-mpu6050": import_sunsided_mpu6050,
     "imu-tk-xsens": import_imu_tk_xsens,

@@ -183,3 +183,37 @@ def heldout_stationing(calibration: Calibration, path, urdf=None, sigmas: Statio
     e_lib = lib.predict_prism(0) - g.prism_W
     e_base = base.predict_prism(0) - g.prism_W
     return HeldOut(g.name, int(ev.sum()), _rms(e_lib[ev]), _rms(e_base[ev]), _rms(e_lib[g.stationing]))
+
+
+# --- the audit (``selfcal audit REC --system stationing``) ------------------------------------------------------
+
+RECORDING_COLUMNS = {"column_height", "stationing", "upside_down", "waypoint_id"}  # bookkeeping, not drivers
+
+
+def audit_system(recording, base: str = "bend", sensors: list[str] | None = None):
+    """The audit's view of a stationing recording (``selfcal import hilti-stationing``): the sensor with
+    ``sensor_type: stationing`` (or ``sensors[0]``), its URDF beside it."""
+    from selfcal.audit.stationing import StationingAudit
+    from selfcal.graphs.stationing import file_geometry
+    from selfcal.io.recording import RecordingError
+    from selfcal.io.stationing import stationing_data_of
+    where = recording.path if recording.path is not None else "<recording>"
+    if sensors:
+        if sensors[0] not in recording.sensors:
+            raise RecordingError(f"{where}: no sensor {sensors[0]!r}")
+        name = sensors[0]
+    else:
+        found = [n for n, s in recording.sensors.items() if s.meta.get("sensor_type") == "stationing"]
+        if not found:
+            raise RecordingError(f"{where}: no sensor with sensor_type: stationing (import a dataset with "
+                                 "`selfcal import hilti-stationing`)")
+        name = found[0]
+    sensor = recording.sensors[name]
+    data, urdf = stationing_data_of(sensor, f"{where}/{name}")
+    geometry = file_geometry(data, read_urdf_chain(urdf, ARM_FROM, ARM_TO))
+    joints = list(sensor.meta["joint_names"])
+    measured = {f"{p}_{a}" for p in ("prism", "base_accel", "column_accel") for a in "xyz"}
+    angles = {n: sensor.values[n] for n in joints[1:]}
+    channels = {n: (v, sensor.units.get(n, "")) for n, v in sensor.values.items()
+                if n not in measured and n not in joints and n not in RECORDING_COLUMNS}
+    return StationingAudit(geometry, _urdf_prism(urdf), data.time_s, name, angles, channels)

@@ -27,10 +27,16 @@ class StationingScenario:
     mount_column_rotvec: np.ndarray = field(default_factory=lambda: np.array([-0.001, 0.015, -0.3]))
     mount_base_rotvec: np.ndarray = field(default_factory=lambda: np.array([0.019, 0.010, 0.0]))
     base_tilt_rad: np.ndarray = field(default_factory=lambda: np.array([0.01, -0.03]))
+    base_position_m: tuple = (7.0, 5.5, -2.0)  # the column's foot in the total-station frame
     tilt_sigma_rad: float = 0.002  # the column's bend per waypoint
     gravity_m_s2: float = 9.8077
     prism_sigma_m: float = 0.75e-3
     accel_sigma_m_s2: float = 4.3610059e-4
+    # effects outside the model (for the audit's tests; zero: the model's own world)
+    range_error_per_m: float = 0.0  # the total station reads a distance r as r + k (r - r_mean): a scale error
+    # whose zero point was calibrated at the mean range of the run
+    base_rock_rad_per_m: float = 0.0  # the base accelerometer tilts about the tip's y axis by k * (arm x reach)
+    column_bias_harmonic_m_s2: float = 0.0  # column accelerometer x bias A sin(arm angle) (a cable's pull)
 
     def __post_init__(self):
         rng = np.random.default_rng(self.seed)
@@ -48,7 +54,7 @@ class StationingScenario:
         self.t_T_tool = rng.uniform([0.0, -0.7, -0.1], [1.4, 0.7, 0.4], (n, 3))
         self.tilt_rad = rng.normal(0.0, self.tilt_sigma_rad, (n, 2))
         base_R = Rotation.from_rotvec([*self.base_tilt_rad, 0.3]).as_matrix()
-        self.W_T_B = (base_R, np.array([7.0, 5.5, -2.0]))
+        self.W_T_B = (base_R, np.asarray(self.base_position_m, dtype=float))
         self.R_T_Acol = Rotation.from_rotvec(self.mount_column_rotvec).as_matrix()
         self.R_B_Abase = Rotation.from_rotvec(self.mount_base_rotvec).as_matrix()
         # station poses: the tip at height h above the base, with a small static lean per height
@@ -68,7 +74,13 @@ class StationingScenario:
                                           self.column_height[idx], self.pivot_fraction)[0]
             accel_col[idx] = specific_force_A(self.station_R[s], self.tilt_rad[idx], self.R_T_Acol,
                                               np.full(idx.sum(), self.gravity_m_s2))[0]
-        accel_base = specific_force_A(self.W_T_B[0], np.zeros((n, 2)), self.R_B_Abase, np.full(n, self.gravity_m_s2))[0]
+        # the base rocks under the arm's moment: a tilt about y in proportion to the tool's x reach
+        rock = np.column_stack([np.zeros(n), self.base_rock_rad_per_m * self.t_T_tool[:, 0]])
+        accel_base = specific_force_A(self.W_T_B[0], rock, self.R_B_Abase, np.full(n, self.gravity_m_s2))[0]
+        r = np.linalg.norm(prism, axis=1)  # the total station sits at the origin of W
+        prism = prism + (self.range_error_per_m * (r - r.mean()) / r)[:, None] * prism
+        arm_angle = np.arctan2(self.t_T_tool[:, 1], self.t_T_tool[:, 0])
+        accel_col[:, 0] += self.column_bias_harmonic_m_s2 * np.sin(arm_angle)
         return {"prism_W": prism, "accel_column": accel_col, "accel_base": accel_base}
 
     def perturbed(self, seed) -> dict:
