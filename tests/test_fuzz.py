@@ -1,19 +1,32 @@
 """Fuzzing the commands with mutated recordings (issue 16, item 7): every mutation class of the issue, drawn by
 ``hypothesis``, through the command line in-process.  Only two outcomes are allowed:
 
-* refused: exit 1, exactly one line on stderr starting ``selfcal: error:``, no traceback, no output file;
-* accepted: exit 0, a finite output, and an answer as good as the clean recording's: within twice the clean
-  run's own error against the truth plus a floor set by the estimator's reported accuracy (stated per command).
+* refused: exit 1, exactly one line on stderr starting ``selfcal: error:``, no traceback, no output file (nothing
+  at all beside the recording: no side file, no temporary);
+* accepted: exit 0, every output written and finite, and an answer as good as the clean recording's: within twice
+  the clean run's own error against the truth plus a floor set by the estimator's reported accuracy (stated per
+  command); the audit: the clean run's findings.
 
-The default run draws a bounded number of examples per command (derandomised: the same ones on every machine);
-``-m slow`` draws many more, from a random seed.
+The default run draws a bounded number of examples per command (derandomised: the same ones on every machine),
+plus each command's ``always`` mutations (the defects found, classes a few draws may miss); ``-m slow`` draws many
+more, from a random seed.
 
-Mutation classes (applied to ``imu0``): columns in other units (g, mg, deg/s), a dead (constant) column, a
-placeholder value (1e300), a gap of 1 ms to 10 min, timestamps in us instead of ns, sensor.yaml noise zero,
-negative or text, a recording cut to a few rows, and the identity (which must be accepted and equal the clean
-result); and a ship's speed log in knots (``speed0``; the identity for recordings without one): the 60 s calm
-voyage holds no speed change to judge the unit by, so it is let through with a warning, and its answer must be
-as good (knots move the calm voyage's attitude by 0.001 deg: its known acceleration is tiny).
+Mutation classes, one strategy per sensor kind (``MUTATIONS``):
+
+* IMU (``imu0``): columns in other units (g, mg, deg/s), a dead (constant) column, a placeholder value (1e300), a
+  gap of 1 ms to 10 min, timestamps in us instead of ns, sensor.yaml noise zero, negative or text, a recording cut
+  to a few rows, and the identity (which must be accepted and equal the clean result);
+* ship: the IMU's, and a speed log in knots (``speed0``): the 60 s calm voyage holds no speed change to judge the
+  unit by, so it is let through with a warning, and its answer must be as good (knots move the calm voyage's
+  attitude by 0.001 deg: its known acceleration is tiny);
+* tracker: the IMU's, and laser-tracker positions in mm (``tracker0`` x1000), inclinometer angles in degrees
+  (``incl0``);
+* scan: INS timestamps in us, an INS of 2 rows, a truncated point file (``scan0/<t>.npy``);
+* encoder: N copies of one frame, frames cast to int8, a truncated ``frames.npy`` or calibration ``cov.npy`` (the
+  identity where the command reads no calibration).
+
+``qc`` is not here: it reads a point cloud, which none of these mutations makes (its bad inputs are tested in
+test_qc_pointcloud_io.py).
 """
 from __future__ import annotations
 
