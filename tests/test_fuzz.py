@@ -194,6 +194,7 @@ class Command:
         return ([*self.argv, str(rec), *self.options(rec), *[a for (option, _), out in zip(self.outputs, outs)
                                                                for a in (option, str(out))]], outs)
 
+
 def span_s(tum_file: Path) -> float:
     """The time a TUM trajectory covers, s.  An accepted trajectory covers the clean one's, less 1 s (its first
     and last keyframes): an answer on a compressed or cut clock is no answer, whatever its error at the times it
