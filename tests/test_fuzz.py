@@ -332,7 +332,7 @@ class ImuAudit(Command):
     scale errors of 0.8-1.5 % (z-scores of tens at this length): accepted answers name the same findings as the
     clean run, and write both outputs."""
     argv = ("audit",)
-    examples = (3, 30)
+    examples = (3, 100)
     outputs = (("--json", "audit.json"), ("--report", "audit.html"))
 
     def __init__(self):
