@@ -242,7 +242,8 @@ class ShipSmoothing(Command):
     twice the clean run's plus 0.1 deg (a tenth of the accelerometer-tilt sigma floor)."""
     argv = ("smooth", "ship")
     kind = "ship"
-    always = (("timestamps in us", None),)  # was exit 0 on a 1000x compressed clock
+    always = (("timestamps in us", None),  # was exit 0 on a 1000x compressed clock
+              ("truncated", 10))  # was exit 0: a 0.2 s attitude of a 60 s voyage, its speed log dropped
     outputs = (("--out", "ship.tum"),)
 
     def __init__(self):
@@ -273,6 +274,8 @@ class TrackerSmoothing(Command):
     the clean run's plus 1 mm (twice the tracker's 0.5 mm sigma)."""
     argv = ("smooth", "tracker")
     kind = "tracker"
+    always = (("truncated", 22),)  # was exit 0: a 0.1 s trajectory of a 30 s run, its tracker positions dropped
+    whole_span = True
     outputs = (("--out", "tracker.tum"),)
 
     def __init__(self):
@@ -291,7 +294,7 @@ class TrackerSmoothing(Command):
         self.clean_error, self.clean_span_s = self.error_m(out), span_s(out)
 
     def good_enough(self, out: Path, mutation) -> None:
-        assert span_s(out) >= self.clean_span_s - 1.0, mutation
+        assert span_s(out) >= self.clean_span_s - 1.0 or not self.whole_span, mutation
         assert self.error_m(out) <= 2 * self.clean_error + 1e-3, mutation
 
 
@@ -325,6 +328,7 @@ class TrackerOnline(TrackerSmoothing):
     """``track --replay`` (the online path) on the same run; the same rule as ``smooth tracker``."""
     argv = ("track", "--system", "tracker", "--replay")
     outputs = (("--out-tum", "online.tum"),)
+    whole_span = False  # the replay starts over at an IMU gap, and says so: no pose while the IMU is missing
 
 
 class ImuAudit(Command):
@@ -525,3 +529,10 @@ def test_a_mutated_recording_is_refused_in_one_line_or_answered_as_well_as_the_c
 @pytest.mark.slow
 def test_many_mutated_recordings(command):
     draw(command, command.examples[1])
+
+
+@pytest.mark.xfail(strict=True, reason="found by the fuzz, not fixed: after an IMU clock jump of 3.6 s the online "
+                   "replay starts over and is accepted with 2.3 mm RMS error (clean 0.25 mm)")
+@pytest.mark.parametrize("command", ["track"], indirect=True)
+def test_an_imu_clock_jump_in_the_online_replay(command):
+    fuzz(command, ("gap", (0.5544816731069238, 0.5544816731069238)))

@@ -29,7 +29,13 @@ Numbers (why these and not others):
   sea (its 30 s tilt band then lies beyond the recording) and was smoothed to exit 0, or was refused as an
   accelerometer in g (the 1 s means then average all the poses of a multi-position recording).
 
-Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func:`inclinometer_problems`):
+Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func:`inclinometer_problems`,
+:func:`coverage_problems`):
+
+* time: the IMU carries every estimate between the aiding samples, so an aiding sample outside the IMU's record
+  is used by nothing.  A recording's ends overhang by seconds of minutes (a few per cent of the samples); more
+  than half of a sensor's samples outside is an IMU record cut short (a truncated file, a logger that stopped):
+  the estimate would cover a sliver of the recording and drop the rest without a word.
 
 * laser tracker: no laser tracker measures beyond 200 m (the longest-range ones, 80 m radius); and the
   acceleration its positions show must be what the accelerometer feels: ``|a_W + g e_z| = |f_B|`` whatever the
@@ -81,6 +87,7 @@ MAX_RATE_RAD_S = 100.0
 GYRO_PATH_RATIO = (0.5, 15.0)
 MIN_ROTATION_DEG = 20.0
 GAP_PERIODS, GAP_FLOOR_S = 20.0, 1.0
+MAX_OUTSIDE_FRACTION = 0.5  # aiding samples outside the IMU record: more is a cut IMU, not an overhang
 RATE_FACTOR = 10.0  # measured over stated rate: outside [1/10, 10] the timestamps are in another unit
 MAX_TRACKER_RANGE_M = 200.0
 TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
@@ -240,6 +247,18 @@ def _window_means(t_s: np.ndarray, x: np.ndarray, centres_s: np.ndarray, half_wi
     n = (hi - lo)[:, None]
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(n > 0, (c[hi] - c[lo]) / n, np.nan)
+
+
+def coverage_problems(t_imu_s, t_other_s, other: str) -> list[str]:
+    """The IMU's record against an aiding sensor's samples (one clock, s; module docstring)."""
+    t_imu, t = np.asarray(t_imu_s, dtype=float), np.asarray(t_other_s, dtype=float)
+    if t_imu.size == 0 or t.size == 0:
+        return []
+    outside = int(np.count_nonzero((t < t_imu[0]) | (t > t_imu[-1])))
+    if outside <= MAX_OUTSIDE_FRACTION * t.size:
+        return []
+    return [f"the IMU record covers {t_imu[-1] - t_imu[0]:.4g} s, {other} {t[-1] - t[0]:.4g} s ({outside} of {t.size} "
+            f"of its samples outside): the IMU record is cut short (a truncated file, a logger that stopped)"]
 
 
 def tracker_problems(t_tracker_s, p_W_m, t_imu_s, f_B_m_s2, tracker_W_m=(0.0, 0.0, 0.0),
