@@ -74,6 +74,14 @@ def test_a_five_minute_gap_is_refused(clean):
         mutated(clean, t_ns=gap(clean)).imu("imu0")
 
 
+def test_timestamps_in_us_are_named_as_such(clean):
+    """Found by the fuzz (test_fuzz.py): us read as ns passed a ship at sea to exit 0 and called a multi-position
+    recording an accelerometer in g; the spacing against sensor.yaml's rate_hz names it."""
+    t = clean.sensors["imu0"].t_ns
+    with pytest.raises(RecordingError, match="timestamps in us"):
+        mutated(clean, t_ns=t[0] + (t - t[0]) // 1000).imu("imu0")
+
+
 @pytest.mark.parametrize("value", [0.0, -1e-3, "abc", float("nan")])
 def test_sensor_yaml_noise_must_be_a_positive_number(clean, tmp_path, value):
     path = write_recording(mutated(clean, meta={"gyroscope_noise_density": value}), tmp_path / "rec")

@@ -23,8 +23,19 @@ Numbers (why these and not others):
   loggers of the real MPU-6050 recordings stall for up to 0.28 s, once 0.5 s in 11 minutes).  A system whose
   estimator cannot bridge less sets its own, tighter limit (the tracker: :data:`selfcal.pipelines.tracker.
   MAX_IMU_GAP_S`).
+* time: the median sample spacing against the sensor.yaml's ``rate_hz``, where there is one: a factor of 10
+  either way (no logger runs at a tenth or ten times its stated rate) is timestamps in another unit read as ns
+  (us: 1000x the rate, ms: 1e6x).  Without this the compressed time passed every other check on a ship at
+  sea (its 30 s tilt band then lies beyond the recording) and was smoothed to exit 0, or was refused as an
+  accelerometer in g (the 1 s means then average all the poses of a multi-position recording).
 
-Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func:`inclinometer_problems`):
+Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func:`inclinometer_problems`,
+:func:`coverage_problems`):
+
+* time: the IMU carries every estimate between the aiding samples, so an aiding sample outside the IMU's record
+  is used by nothing.  A recording's ends overhang by seconds of minutes (a few per cent of the samples); more
+  than half of a sensor's samples outside is an IMU record cut short (a truncated file, a logger that stopped):
+  the estimate would cover a sliver of the recording and drop the rest without a word.
 
 * laser tracker: no laser tracker measures beyond 200 m (the longest-range ones, 80 m radius); and the
   acceleration its positions show must be what the accelerometer feels: ``|a_W + g e_z| = |f_B|`` whatever the
@@ -76,6 +87,8 @@ MAX_RATE_RAD_S = 100.0
 GYRO_PATH_RATIO = (0.5, 15.0)
 MIN_ROTATION_DEG = 20.0
 GAP_PERIODS, GAP_FLOOR_S = 20.0, 1.0
+MAX_OUTSIDE_FRACTION = 0.5  # aiding samples outside the IMU record: more is a cut IMU, not an overhang
+RATE_FACTOR = 10.0  # measured over stated rate: outside [1/10, 10] the timestamps are in another unit
 MAX_TRACKER_RANGE_M = 200.0
 TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
 MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
@@ -87,9 +100,10 @@ SPEED_UNITS = ((1.0 / 1.943844, "knots? multiply by 0.514444"), (1.0 / 3.6, "km/
 
 
 def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x", "a_y", "a_z"),
-                 gaps_allowed: bool = False) -> list[str]:
+                 gaps_allowed: bool = False, rate_hz: float | None = None) -> list[str]:
     """One line per physical problem of an IMU recording (empty: nothing found); ``columns`` names the six
-    columns in the messages; ``gaps_allowed``: for an online replay, which starts over at a gap."""
+    columns in the messages; ``gaps_allowed``: for an online replay, which starts over at a gap; ``rate_hz``:
+    the stated sample rate (sensor.yaml), to which the timestamps' spacing must be near."""
     t = np.asarray(t_s, dtype=float)
     w = np.asarray(gyro_rad_s, dtype=float)
     a = np.asarray(accel_m_s2, dtype=float)
@@ -106,12 +120,28 @@ def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x
                        f"is beyond any sensor's range ({limit:g} {unit}): a placeholder or a mis-read column")
     if out:
         return out
+    out += _rate(t, rate_hz)
+    if out:
+        return out
     if not gaps_allowed:  # an online estimator starts over at a gap instead (and says so)
         out += _gap(t)
     out += _accel_units(t, a)
     if not out:
         out += _gyro_units(t, w, a) or _gyro_tilt_gain(t, w, a)
     return out
+
+
+def _rate(t: np.ndarray, rate_hz: float | None) -> list[str]:
+    if rate_hz is None or t.size < 2:
+        return []
+    spacing_s = float(np.median(np.diff(t)))
+    ratio = 1.0 / (spacing_s * float(rate_hz)) if spacing_s > 0 else np.inf
+    if 1.0 / RATE_FACTOR <= ratio <= RATE_FACTOR:
+        return []
+    hint = ("timestamps in us? multiply by 1000" if 300 < ratio < 3000 else
+            "timestamps in ms? multiply by 1e6" if 3e5 < ratio < 3e6 else "timestamps not in ns, or rate_hz wrong")
+    return [f"samples {spacing_s:.3g} s apart ({ratio * float(rate_hz):.4g} Hz) but sensor.yaml says rate_hz "
+            f"{float(rate_hz):g}: {hint}"]
 
 
 def _gap(t: np.ndarray) -> list[str]:
@@ -227,6 +257,18 @@ def quadratic_second_derivative_weights(n: int, dt_s: float) -> np.ndarray:
     half = n // 2
     x = np.arange(-half, half + 1) * dt_s
     return 2.0 * np.linalg.pinv(np.vander(x, 3, increasing=True))[2]  # 2 c2 of the fit c0 + c1 x + c2 x^2
+
+
+def coverage_problems(t_imu_s, t_other_s, other: str) -> list[str]:
+    """The IMU's record against an aiding sensor's samples (one clock, s; module docstring)."""
+    t_imu, t = np.asarray(t_imu_s, dtype=float), np.asarray(t_other_s, dtype=float)
+    if t_imu.size == 0 or t.size == 0:
+        return []
+    outside = int(np.count_nonzero((t < t_imu[0]) | (t > t_imu[-1])))
+    if outside <= MAX_OUTSIDE_FRACTION * t.size:
+        return []
+    return [f"the IMU record covers {t_imu[-1] - t_imu[0]:.4g} s, {other} {t[-1] - t[0]:.4g} s ({outside} of {t.size} "
+            f"of its samples outside): the IMU record is cut short (a truncated file, a logger that stopped)"]
 
 
 def tracker_problems(t_tracker_s, p_W_m, t_imu_s, f_B_m_s2, tracker_W_m=(0.0, 0.0, 0.0),

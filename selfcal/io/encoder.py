@@ -85,8 +85,9 @@ def read_encoder_arrays(rec: Recording, frames: dict[str, np.ndarray] | None = N
                 raise EncoderRecordingError(f"{where}/frames.npy: missing (the array's signal vectors)")
             try:
                 data = np.load(s.folder / "frames.npy", allow_pickle=False)
-            except (ValueError, OSError) as err:
-                raise EncoderRecordingError(f"{where}/frames.npy: not a numpy array file ({err})") from None
+            except (ValueError, OSError, EOFError) as err:  # EOFError: an empty file (a run killed at its start)
+                raise EncoderRecordingError(f"{where}/frames.npy: not a numpy array file "
+                                            f"({' '.join(str(err).split()) or type(err).__name__})") from None
         n = int(meta["n_diodes"])
         if data.ndim != 2:
             raise EncoderRecordingError(f"{where}/frames.npy: expected a 2-D array (frames x diodes), "

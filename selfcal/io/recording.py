@@ -112,7 +112,7 @@ class Recording:
             raise RecordingError(f"{where}/{name}: not an IMU sensor (missing columns {', '.join(missing)})")
         problems = imu_problems((s.t_ns - s.t_ns[0]) * 1e-9, np.column_stack([s.values[c] for c in GYRO_COLUMNS]),
                                 np.column_stack([s.values[c] for c in ACCEL_COLUMNS]), GYRO_COLUMNS + ACCEL_COLUMNS,
-                                gaps_allowed)
+                                gaps_allowed, s.meta.get("rate_hz"))
         if problems:
             raise RecordingError(f"{where}/{name}: {problems[0]}")
         channels = {c: v for c, v in s.values.items() if c not in IMU_UNITS}

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from selfcal.core import inertial
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import GAP_FLOOR_S, GAP_PERIODS, speed_problems
+from selfcal.core.sanity import GAP_FLOOR_S, GAP_PERIODS, coverage_problems, speed_problems
 from selfcal.graphs.ship import SPEED_RATE_WINDOW_S, ShipEstimate, ShipGraphOptions, ShipInputs, ShipSmoother
 from selfcal.io.recording import Recording, RecordingError
 from selfcal.models import ship
@@ -56,7 +56,8 @@ def speed_source(recording: Recording) -> tuple[str, str] | None:
 
 
 def check_speed(recording: Recording, imu) -> None:
-    """Refuse (RecordingError, one line) a speed the accelerometer's surge shows is not in m/s (knots, km/h,
+    """Refuse (RecordingError, one line) an IMU record cut short of the speed's (:func:`selfcal.core.sanity.
+    coverage_problems`), a speed the accelerometer's surge shows is not in m/s (knots, km/h,
     cm/s: :func:`selfcal.core.sanity.speed_problems`), of the source the estimators use (:data:`SPEED_SOURCES`);
     say so in a warning where the voyage holds no speed change to judge it by."""
     source = speed_source(recording)
@@ -64,6 +65,10 @@ def check_speed(recording: Recording, imu) -> None:
         return
     sensor, column = source
     s = recording.sensors[sensor]
+    problems = coverage_problems((imu.t_ns - imu.t_ns[0]) * 1e-9, (s.t_ns - imu.t_ns[0]) * 1e-9, sensor)
+    if problems:
+        raise RecordingError(f"{recording.path if recording.path is not None else '<recording>'}/{imu.name}: "
+                             f"{problems[0]}")
     problems, unjudged = speed_problems((s.t_ns - imu.t_ns[0]) * 1e-9, s.values[column],
                                         (imu.t_ns - imu.t_ns[0]) * 1e-9, imu.accel_m_s2[:, 0])
     where = f"{recording.path if recording.path is not None else '<recording>'}/{sensor}"

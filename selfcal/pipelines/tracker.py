@@ -17,7 +17,7 @@ import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import accelerometer_tilt_at, inclinometer_problems, tracker_problems
+from selfcal.core.sanity import accelerometer_tilt_at, coverage_problems, inclinometer_problems, tracker_problems
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
 from selfcal.io.camera import read_camera
@@ -169,6 +169,10 @@ def check_sensors(recording: Recording, gaps_allowed: bool = False) -> None:
                              f"{(imu.t_ns[i] - t0_ns) * 1e-9:.6g} s: the tracker bridges at most {MAX_IMU_GAP_S:g} s "
                              "(its keyframes are 0.1 s apart); split the recording at the gap")
     t_imu = (imu.t_ns - t0_ns) * 1e-9
+    for name in ("tracker0", "incl0"):
+        problems = coverage_problems(t_imu, (recording.sensors[name].t_ns - t0_ns) * 1e-9, name)
+        if problems:
+            raise RecordingError(f"{recording.path}/imu0: {problems[0]}")
     tr = recording.sensors["tracker0"]
     meta = tr.meta or {}
     problems = tracker_problems((tr.t_ns - t0_ns) * 1e-9, np.column_stack([tr.values[c] for c in ("x", "y", "z")]),
