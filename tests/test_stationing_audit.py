@@ -82,6 +82,7 @@ def test_the_models_own_world_shows_nothing():
 
 
 @pytest.mark.skipif(not (HILTI / "flat.yaml").exists(), reason="shared/data/hilti_stationing... not present")
+@pytest.mark.slow  # ~5 min of CPU: the base fit and cross-validation of a real file
 def test_real_hilti_file_gets_a_verdict_per_family(tmp_path):
     """The imported flat.yaml is audited: base fit, cross-validation and the remaining-structure verdict of every
     family (the full search runs in minutes: docs/audit.md, 'Hilti stationing (real)')."""
