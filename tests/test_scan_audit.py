@@ -74,3 +74,21 @@ def test_sphere_radius_growing_with_range_is_unlisted_in_range_not_a_gyro_scale(
         ranges = next(c.values for c in system.term_coordinates()[("scan0", "sphere")] if c.name == "range")
         expected = slope * (np.mean(ranges) - np.mean(ScanScenario().sphere_range_m))
         assert abs(radius[0]["estimate"]["dR_m"] - expected) < 3 * radius[0]["std"]["dR_m"]
+
+
+def test_a_higher_polynomial_adding_no_rank_over_the_lower_one_is_not_tried():
+    """A cubic whose rank gain over the model is that of the linear term in the same driver says what the linear
+    term says (measured on a scan: the cubic in range, gain 1, won by rounding, p 2.1e-77 vs 2.3e-77, with
+    meaningless coefficients); a cubic that adds directions is kept, and so is a cubic of another driver."""
+    from selfcal.audit.engine import Trial, _adds_nothing_over_lower_degree, generic_candidate
+    from selfcal.audit.terms import Scale, Term
+
+    def trial(form, driver, dof):
+        return Trial(generic_candidate(Term(form, driver, Scale(0.0, 1.0)), "scan0", "sphere", "m"), 400.0, 1e-70,
+                     dof)
+    linear, quadratic, cubic = trial("poly1", "range", 1), trial("poly2", "range", 1), trial("poly3", "range", 1)
+    assert _adds_nothing_over_lower_degree(cubic, [linear, quadratic, cubic])
+    assert _adds_nothing_over_lower_degree(quadratic, [linear, quadratic, cubic])
+    assert not _adds_nothing_over_lower_degree(linear, [linear, quadratic, cubic])
+    assert not _adds_nothing_over_lower_degree(trial("poly3", "range", 3), [linear, trial("poly2", "range", 2)])
+    assert not _adds_nothing_over_lower_degree(cubic, [trial("poly2", "time", 1)])
