@@ -7,7 +7,7 @@ reported sigma of the truth, and every other finding (a false finding; nulls: ev
 patents' methods have no audit (the ratio column is empty).  Usage:
 
     .venv/bin/python benchmarks/audit_open_world_systems.py [--quick] [--seeds 20] [--systems qc,encoder]
-        [--json out.json]
+        [--only ship/heading,scan/range] [--json out.json]
 """
 from __future__ import annotations
 
@@ -130,13 +130,18 @@ def main() -> None:
     _schema.add_arguments(parser, "audit_open_world_systems")
     parser.add_argument("--seeds", type=int, default=None, help="recordings per suite (default 20, quick 3)")
     parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated subset of " + ",".join(SYSTEMS))
+    parser.add_argument("--only", default=None, help="comma-separated system/suite cases (e.g. ship/heading): "
+                                                     "run only these (the ship's take minutes per seed)")
     args = parser.parse_args()
+    only = set(args.only.split(",")) if args.only else None
     n = args.seeds or (3 if args.quick else 20)
     start = time.perf_counter()
     rows, table = [], {}
     for system_name in args.systems.split(","):
         make, suites = SYSTEMS[system_name]
         for suite in suites:
+            if only is not None and f"{system_name}/{suite}" not in only:
+                continue
             named = sized = checked = false = refused = 0
             seconds = 0.0
             for seed in range(2000, 2000 + n):
@@ -156,6 +161,9 @@ def main() -> None:
                 if hits and check is not None:
                     checked += 1
                     sized += bool(check(hits[0]))
+                others = [f"{f['effect']}:{f.get('driver', '')}:{f.get('form', '')}" for f in findings if f not in hits]
+                print(f"  {system_name}/{suite} seed {seed}: named {bool(hits)}, size "
+                      f"{bool(check(hits[0])) if hits and check else '-'}, others {others}", flush=True)
             label = f"{system_name}/{suite}"
             entry = {"false_per_recording": false / n, "audit_s_per_recording": seconds / n, "refused": refused}
             if suite not in ("null", "scatter_null"):

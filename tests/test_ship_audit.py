@@ -110,3 +110,25 @@ def test_generic_terms_have_keys_of_their_own():
     term = next(t for t in terms_for(coordinates) if t.form == "poly1")
     graph, values, groups = system.extend_all(fit, [generic_candidate(term, "imu0", "tilt", "rad")])
     assert len(groups) == 1 and all(values.exists(key) for key, _ in groups[0])
+
+
+def test_folds_interleave_blocks_on_the_whole_gyro_chain():
+    """Folds are alternate FOLD_BLOCK_S blocks (a heading or a time only one half of a voyage visits made a term's
+    held-out check an extrapolation); each fold's fit carries every keyframe's attitude on the gyro chain (one
+    heading gauge for all blocks) but has the tilt residuals of its own blocks only, and the held-out solve
+    returns the other blocks' residuals."""
+    from selfcal.audit.ship import FOLD_BLOCK_S
+    from selfcal.graphs.ship import R_KEY
+    rec = ShipScenario(kind="heave", duration_s=60.0, seed=3, lever_arm_m=(0.0, 0.0, 0.0)).perturbed_measurements(103)
+    system = ShipAudit(ship_inputs(rec), keyframe_s=1.0)
+    t = np.array([f.t_s for f in system.frames])
+    block = ((t - t[0]) // FOLD_BLOCK_S).astype(int)
+    for fold in (0, 1):
+        fit = system.fit((), fold)
+        times = fit.families[0].coordinates["time_s"]
+        assert set(block[np.isin(t, times)] % 2) == {fold}  # its own blocks' tilts only ...
+        assert len(set(block[np.isin(t, times)])) >= 1 + (fold == 0)  # ... from blocks spread over the voyage
+        assert all(fit.values.exists(R_KEY(j)) for j in range(len(t)))  # every attitude, on one gyro chain
+        held = system.heldout(fit, fold)[0]
+        assert len(held.whitened) + len(times) == len(t)
+        assert set(block[np.isin(t, held.coordinates["time_s"])] % 2) == {1 - fold}
