@@ -93,6 +93,8 @@ MAX_TRACKER_RANGE_M = 200.0
 TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
 MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
 GAIN_RANGE = (0.1, 10.0)  # units differ by 57 (deg) or 1000 (mrad); aliased vibration moved it to 0.24
+CLOCK_WINDOW_S, CLOCK_MIN_SAMPLES, CLOCK_FALSE_ALARM = 60.0, 20, 1e-3  # clock jumps: block, judged, p
+CLOCK_CHUNK = 256  # shifts evaluated at once (memory: chunk x inclinometer samples)
 SPEED_WINDOW_S, MIN_SPEED_WINDOWS = 60.0, 10  # three periods of the longest pitch (20 s); t-statistic dof >= 8
 SURGE_SLOPE_RANGE, SURGE_SLOPE_RELATIVE_SIGMA = (0.72, 1.39), 0.04  # 1/sqrt(1.944) either way; judged at sigma <= 4 %
 SPEED_UNITS = ((1.0 / 1.943844, "knots? multiply by 0.514444"), (1.0 / 3.6, "km/h? divide by 3.6"),
@@ -396,3 +398,77 @@ def speed_problems(t_speed_s, speed, t_imu_s, f_x_m_s2) -> tuple[list[str], str 
     return [f"its speed changes {1.0 / slope if slope else np.inf:.3g} x as fast as the accelerometer's surge "
             f"(slope of f_x on dv/dt {slope:.3g} +- {sigma:.2g} over {n} windows of {SPEED_WINDOW_S:g} s; 1 "
             f"expected): {hint}"], None
+
+
+
+def clock_jump_problems(t_imu_s, f_B_m_s2, t_incl_s, tilt_incl_rad, average_s: float, min_gap_s: float,
+                        window_s: float = CLOCK_WINDOW_S) -> list[str]:
+    """One line per IMU gap longer than ``min_gap_s`` after which the IMU's stamps no longer agree in time with
+    the inclinometer's (``t_*_s`` on one clock, s; module docstring): a clock jump, not data lost."""
+    t = np.asarray(t_imu_s, dtype=float)
+    f = np.asarray(f_B_m_s2, dtype=float)
+    t_inc, tilt = np.asarray(t_incl_s, dtype=float), np.asarray(tilt_incl_rad, dtype=float)
+    if t.size < 3 or t_inc.size < CLOCK_MIN_SAMPLES:
+        return []
+    dt = float(np.median(np.diff(t)))
+    ends = np.flatnonzero(np.diff(t) > min_gap_s)  # the last sample before each gap
+    bounds = np.concatenate([[0], ends + 1, [t.size]])
+    out = []
+    for g, i in enumerate(ends):
+        gap_s = float(t[i + 1] - t[i])
+        before = slice(max(bounds[g], int(np.searchsorted(t, t[i] - window_s))), i + 1)
+        after = slice(i + 1, min(bounds[g + 2], int(np.searchsorted(t, t[i + 1] + window_s))))
+        latency_s = min(gap_s, window_s / 2)  # a constant latency between the two, as far as a block shows one
+        pre = _best_shift(t[before], f[before], t_inc, tilt, average_s, dt, 0.0, -latency_s, latency_s)
+        reference = pre[0] if pre is not None and pre[3] else 0.0
+        # the stamps after the gap run ahead by what the gap holds beyond the samples lost: 0 to the gap
+        post = _best_shift(t[after], f[after], t_inc, tilt, average_s, dt, reference, reference, reference + gap_s)
+        if post is None or not post[3]:
+            continue
+        shift, rms, rms_as_stamped, _ = post
+        jump = shift - reference
+        out.append(f"its clock jumps {jump:.4g} s at its {gap_s:.4g} s gap after t = {t[i] - t[0]:.6g} s: after the "
+                   f"gap its accelerometer's tilt matches the inclinometer's {jump:.4g} s off its stamps (RMS "
+                   f"{1e3 * rms_as_stamped:.2g} mrad as stamped, {1e3 * rms:.2g} shifted): samples restamped, not "
+                   "lost; correct its timestamps after the gap, or split the recording there")
+    return out
+
+
+def _best_shift(t, f, t_inc, tilt, average_s, dt, reference_s, lo_s, hi_s):
+    """The IMU block (``t``, ``f``) read ``shift`` s off its stamps (IMU stamp = inclinometer time + shift), for
+    shifts on the IMU's sample grid in [lo_s, hi_s]: the mean square of the per-axis demeaned difference between
+    the inclinometer's tilt and the tilt of the accelerometer's mean over the inclinometer's averaging window.
+    Returns (best shift, its RMS, the RMS at ``reference_s``, whether the best beats the reference by an F test at
+    CLOCK_FALSE_ALARM over all the shifts tried, Bonferroni), or None when the block holds too few inclinometer
+    samples to judge."""
+    from scipy.special import fdtri  # the F distribution's quantile (scipy.stats costs seconds to import)
+
+    if t.size < 2:
+        return None
+    window = max(average_s, dt)
+    c = np.vstack([np.zeros(3), np.cumsum(f, axis=0)])
+    shifts = np.concatenate([[reference_s], np.arange(lo_s, hi_s + 0.5 * dt, dt)])
+    first, last = np.searchsorted(t_inc, [t[0] + window - shifts.max(), t[-1] + dt - shifts.min()])
+    t_inc, tilt = t_inc[first:last], tilt[first:last]  # every inclinometer sample some shift puts in the block
+    mean_square, counts = np.full(shifts.size, np.inf), np.zeros(shifts.size, dtype=int)
+    for k in range(0, shifts.size, CLOCK_CHUNK):  # (shifts, samples) at once, a chunk of shifts at a time
+        tau = t_inc[None, :] + shifts[k:k + CLOCK_CHUNK, None]  # the inclinometer's samples on the IMU's stamps
+        lo, hi = np.searchsorted(t, tau - window - 1e-9), np.searchsorted(t, tau - 1e-9)
+        ok = (hi > lo) & (tau - window >= t[0]) & (tau <= t[-1] + dt)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f_mean = (c[hi] - c[lo]) / (hi - lo)[..., None]
+            r = np.stack(tilt_from_specific_force(f_mean.reshape(-1, 3)), axis=-1).reshape(*tau.shape, 2) - tilt
+        r = np.where(ok[..., None], r, 0.0)
+        n = ok.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r_mean = r.sum(axis=1) / n[:, None]
+            ms = (np.sum(r ** 2, axis=(1, 2)) - n * np.sum(r_mean ** 2, axis=1)) / (2 * n)  # per-axis demeaned
+        judged = n >= CLOCK_MIN_SAMPLES
+        mean_square[k:k + CLOCK_CHUNK] = np.where(judged, ms, np.inf)
+        counts[k:k + CLOCK_CHUNK] = n
+    if not np.isfinite(mean_square[0]):
+        return None
+    best = int(np.argmin(mean_square))
+    ratio = mean_square[0] / mean_square[best] if mean_square[best] > 0 else np.inf
+    critical = float(fdtri(2 * counts[0] - 2, 2 * counts[best] - 2, 1.0 - CLOCK_FALSE_ALARM / (shifts.size - 1)))
+    return float(shifts[best]), float(np.sqrt(mean_square[best])), float(np.sqrt(mean_square[0])), ratio > critical

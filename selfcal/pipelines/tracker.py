@@ -17,7 +17,8 @@ import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import accelerometer_tilt_at, coverage_problems, inclinometer_problems, tracker_problems
+from selfcal.core.sanity import (accelerometer_tilt_at, clock_jump_problems, coverage_problems, inclinometer_problems,
+                                 tracker_problems)
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
 from selfcal.io.camera import read_camera
@@ -187,6 +188,13 @@ def check_sensors(recording: Recording, gaps_allowed: bool = False) -> None:
                                      accelerometer_tilt_at(t_inc, t_imu, imu.accel_m_s2))
     if problems:
         raise RecordingError(f"{recording.path}/incl0: {problems[0]}")
+    if gaps_allowed:  # a gap the online estimator starts over at must be samples lost, not the IMU's clock
+        # jumping while the others keep time: its data after the gap would be fused out of step with theirs
+        average_s = noise_from_meta({"incl0": inc.meta}).incl_average_s
+        problems = clock_jump_problems(t_imu, imu.accel_m_s2, t_inc, np.column_stack([inc.values["roll"],
+                                       inc.values["pitch"]]), average_s, MAX_IMU_GAP_S)
+    if problems:
+        raise RecordingError(f"{recording.path}/imu0: {problems[0]}")
 
 
 def _sensor_events(name, rank, sensor):
