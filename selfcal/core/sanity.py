@@ -404,7 +404,8 @@ def speed_problems(t_speed_s, speed, t_imu_s, f_x_m_s2) -> tuple[list[str], str 
 def clock_jump_problems(t_imu_s, f_B_m_s2, t_incl_s, tilt_incl_rad, average_s: float, min_gap_s: float,
                         window_s: float = CLOCK_WINDOW_S) -> list[str]:
     """One line per IMU gap longer than ``min_gap_s`` after which the IMU's stamps no longer agree in time with
-    the inclinometer's (``t_*_s`` on one clock, s; module docstring): a clock jump, not data lost."""
+    the inclinometer's (``t_*_s`` on one clock, s; module docstring): a clock jump, not data lost.  Gaps where
+    the inclinometer cannot tell (no motion it and the accelerometer both see) are let through."""
     t = np.asarray(t_imu_s, dtype=float)
     f = np.asarray(f_B_m_s2, dtype=float)
     t_inc, tilt = np.asarray(t_incl_s, dtype=float), np.asarray(tilt_incl_rad, dtype=float)
@@ -418,36 +419,58 @@ def clock_jump_problems(t_imu_s, f_B_m_s2, t_incl_s, tilt_incl_rad, average_s: f
         gap_s = float(t[i + 1] - t[i])
         before = slice(max(bounds[g], int(np.searchsorted(t, t[i] - window_s))), i + 1)
         after = slice(i + 1, min(bounds[g + 2], int(np.searchsorted(t, t[i + 1] + window_s))))
-        latency_s = min(gap_s, window_s / 2)  # a constant latency between the two, as far as a block shows one
-        pre = _best_shift(t[before], f[before], t_inc, tilt, average_s, dt, 0.0, -latency_s, latency_s)
-        reference = pre[0] if pre is not None and pre[3] else 0.0
-        # the stamps after the gap run ahead by what the gap holds beyond the samples lost: 0 to the gap
-        post = _best_shift(t[after], f[after], t_inc, tilt, average_s, dt, reference, reference, reference + gap_s)
-        if post is None or not post[3]:
+        # the reference: the shift the block before the gap shows, where it tells one from the rest; else any
+        # offset the estimator would bridge as a gap (a latency, the audit's time_offset; not a jump)
+        pre = _shift_scan(t[before], f[before], t_inc, tilt, average_s, dt, -min_gap_s, min_gap_s)
+        told = pre is not None and _significant(pre, np.abs(pre[0]) < 0.5 * dt)
+        reference = float(pre[0][np.argmin(pre[1])]) if told else 0.0
+        lo, hi = (reference, reference) if told else (-min_gap_s, min_gap_s)
+        # after the gap the stamps run ahead by what the gap holds beyond the samples lost: 0 to the whole gap
+        post = _shift_scan(t[after], f[after], t_inc, tilt, average_s, dt, lo - 0.5 * dt, hi + gap_s)
+        if post is None:
             continue
-        shift, rms, rms_as_stamped, _ = post
-        jump = shift - reference
+        shifts, mean_square, _ = post
+        in_reference = (shifts >= lo - 0.5 * dt) & (shifts <= hi + 0.5 * dt)
+        if not _significant(post, in_reference):
+            continue
+        best = int(np.argmin(mean_square))
+        jump = float(shifts[best]) - reference
+        rms_stamped, rms = np.sqrt(np.min(mean_square[in_reference])), np.sqrt(mean_square[best])
         out.append(f"its clock jumps {jump:.4g} s at its {gap_s:.4g} s gap after t = {t[i] - t[0]:.6g} s: after the "
                    f"gap its accelerometer's tilt matches the inclinometer's {jump:.4g} s off its stamps (RMS "
-                   f"{1e3 * rms_as_stamped:.2g} mrad as stamped, {1e3 * rms:.2g} shifted): samples restamped, not "
+                   f"{1e3 * rms_stamped:.2g} mrad as stamped, {1e3 * rms:.2g} shifted): samples restamped, not "
                    "lost; correct its timestamps after the gap, or split the recording there")
     return out
 
 
-def _best_shift(t, f, t_inc, tilt, average_s, dt, reference_s, lo_s, hi_s):
-    """The IMU block (``t``, ``f``) read ``shift`` s off its stamps (IMU stamp = inclinometer time + shift), for
-    shifts on the IMU's sample grid in [lo_s, hi_s]: the mean square of the per-axis demeaned difference between
-    the inclinometer's tilt and the tilt of the accelerometer's mean over the inclinometer's averaging window.
-    Returns (best shift, its RMS, the RMS at ``reference_s``, whether the best beats the reference by an F test at
-    CLOCK_FALSE_ALARM over all the shifts tried, Bonferroni), or None when the block holds too few inclinometer
-    samples to judge."""
+def _significant(scan, reference: np.ndarray) -> bool:
+    """Whether the best shift of a scan (:func:`_shift_scan`) fits better than the best within ``reference``
+    (a mask over its shifts) beyond chance: an F test of the two mean squares at CLOCK_FALSE_ALARM over every
+    shift tried (Bonferroni)."""
     from scipy.special import fdtri  # the F distribution's quantile (scipy.stats costs seconds to import)
 
+    shifts, mean_square, counts = scan
+    if not np.isfinite(mean_square[reference]).any():
+        return False
+    ref = int(np.flatnonzero(reference)[np.argmin(mean_square[reference])])
+    best = int(np.argmin(mean_square))
+    if best == ref or not mean_square[best] > 0:
+        return False
+    critical = float(fdtri(2 * counts[ref] - 2, 2 * counts[best] - 2, 1.0 - CLOCK_FALSE_ALARM / shifts.size))
+    return bool(mean_square[ref] / mean_square[best] > critical)
+
+
+def _shift_scan(t, f, t_inc, tilt, average_s, dt, lo_s, hi_s):
+    """The IMU block (``t``, ``f``) read ``shift`` s off its stamps (IMU stamp = inclinometer time + shift), for
+    shifts in [lo_s, hi_s] that are multiples of the IMU's sample period ``dt``: the mean square of the per-axis demeaned
+    difference between the inclinometer's tilt and the tilt of the accelerometer's mean over the inclinometer's
+    averaging window.  Returns (shifts, mean squares (inf where too few inclinometer samples to judge), their
+    counts of inclinometer samples), or None when the block is too short."""
     if t.size < 2:
         return None
     window = max(average_s, dt)
     c = np.vstack([np.zeros(3), np.cumsum(f, axis=0)])
-    shifts = np.concatenate([[reference_s], np.arange(lo_s, hi_s + 0.5 * dt, dt)])
+    shifts = dt * np.arange(np.ceil(lo_s / dt - 1e-9), np.floor(hi_s / dt + 1e-9) + 1)
     first, last = np.searchsorted(t_inc, [t[0] + window - shifts.max(), t[-1] + dt - shifts.min()])
     t_inc, tilt = t_inc[first:last], tilt[first:last]  # every inclinometer sample some shift puts in the block
     mean_square, counts = np.full(shifts.size, np.inf), np.zeros(shifts.size, dtype=int)
@@ -466,9 +489,4 @@ def _best_shift(t, f, t_inc, tilt, average_s, dt, reference_s, lo_s, hi_s):
         judged = n >= CLOCK_MIN_SAMPLES
         mean_square[k:k + CLOCK_CHUNK] = np.where(judged, ms, np.inf)
         counts[k:k + CLOCK_CHUNK] = n
-    if not np.isfinite(mean_square[0]):
-        return None
-    best = int(np.argmin(mean_square))
-    ratio = mean_square[0] / mean_square[best] if mean_square[best] > 0 else np.inf
-    critical = float(fdtri(2 * counts[0] - 2, 2 * counts[best] - 2, 1.0 - CLOCK_FALSE_ALARM / (shifts.size - 1)))
-    return float(shifts[best]), float(np.sqrt(mean_square[best])), float(np.sqrt(mean_square[0])), ratio > critical
+    return shifts, mean_square, counts
