@@ -93,7 +93,7 @@ MAX_TRACKER_RANGE_M = 200.0
 TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
 MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
 GAIN_RANGE = (0.1, 10.0)  # units differ by 57 (deg) or 1000 (mrad); aliased vibration moved it to 0.24
-CLOCK_WINDOW_S, CLOCK_MIN_SAMPLES, CLOCK_FALSE_ALARM = 60.0, 20, 1e-3  # clock jumps: block, judged, p
+CLOCK_WINDOW_S, CLOCK_MIN_SAMPLES, CLOCK_FALSE_ALARM = 60.0, 3, 1e-3  # clock jumps: block, judged (F dof >= 4), p
 CLOCK_CHUNK = 256  # shifts evaluated at once (memory: chunk x inclinometer samples)
 SPEED_WINDOW_S, MIN_SPEED_WINDOWS = 60.0, 10  # three periods of the longest pitch (20 s); t-statistic dof >= 8
 SURGE_SLOPE_RANGE, SURGE_SLOPE_RELATIVE_SIGMA = (0.72, 1.39), 0.04  # 1/sqrt(1.944) either way; judged at sigma <= 4 %
@@ -419,12 +419,12 @@ def clock_jump_problems(t_imu_s, f_B_m_s2, t_incl_s, tilt_incl_rad, average_s: f
         gap_s = float(t[i + 1] - t[i])
         before = slice(max(bounds[g], int(np.searchsorted(t, t[i] - window_s))), i + 1)
         after = slice(i + 1, min(bounds[g + 2], int(np.searchsorted(t, t[i + 1] + window_s))))
-        # the reference: the shift the block before the gap shows, where it tells one from the rest; else any
-        # offset the estimator would bridge as a gap (a latency, the audit's time_offset; not a jump)
+        # the reference: the shifts the block before the gap is consistent with (a latency, the audit's
+        # time_offset, not a jump); where it cannot tell, any the estimator would bridge as a gap
         pre = _shift_scan(t[before], f[before], t_inc, tilt, average_s, dt, -min_gap_s, min_gap_s)
-        told = pre is not None and _significant(pre, np.abs(pre[0]) < 0.5 * dt)
-        reference = float(pre[0][np.argmin(pre[1])]) if told else 0.0
-        lo, hi = (reference, reference) if told else (-min_gap_s, min_gap_s)
+        consistent = _consistent(pre) if pre is not None else np.zeros(0, dtype=bool)
+        lo, hi = (pre[0][consistent].min(), pre[0][consistent].max()) if consistent.any() else (-min_gap_s, min_gap_s)
+        reference = 0.0 if lo <= 0.0 <= hi else float(pre[0][np.argmin(pre[1])])  # as stamped, unless shown off
         # after the gap the stamps run ahead by what the gap holds beyond the samples lost: 0 to the whole gap
         post = _shift_scan(t[after], f[after], t_inc, tilt, average_s, dt, lo - 0.5 * dt, hi + gap_s)
         if post is None:
@@ -443,12 +443,28 @@ def clock_jump_problems(t_imu_s, f_B_m_s2, t_incl_s, tilt_incl_rad, average_s: f
     return out
 
 
-def _significant(scan, reference: np.ndarray) -> bool:
-    """Whether the best shift of a scan (:func:`_shift_scan`) fits better than the best within ``reference``
-    (a mask over its shifts) beyond chance: an F test of the two mean squares at CLOCK_FALSE_ALARM over every
-    shift tried (Bonferroni)."""
+def _critical_ratio(scan, ref: int, best: int) -> float:
+    """The F test's critical ratio of two mean squares of a scan at CLOCK_FALSE_ALARM over every shift tried
+    (Bonferroni)."""
     from scipy.special import fdtri  # the F distribution's quantile (scipy.stats costs seconds to import)
 
+    shifts, _, counts = scan
+    return float(fdtri(2 * counts[ref] - 2, 2 * counts[best] - 2, 1.0 - CLOCK_FALSE_ALARM / shifts.size))
+
+
+def _consistent(scan) -> np.ndarray:
+    """The shifts of a scan (:func:`_shift_scan`) that fit not significantly worse than its best (F test)."""
+    shifts, mean_square, _ = scan
+    if not np.isfinite(mean_square).any() or not mean_square.min() > 0:
+        return np.zeros(shifts.size, dtype=bool)
+    best = int(np.argmin(mean_square))
+    return np.array([np.isfinite(m) and m / mean_square[best] <= _critical_ratio(scan, k, best)
+                     for k, m in enumerate(mean_square)])
+
+
+def _significant(scan, reference: np.ndarray) -> bool:
+    """Whether the best shift of a scan fits better than the best within ``reference`` (a mask over its shifts)
+    beyond chance (F test)."""
     shifts, mean_square, counts = scan
     if not np.isfinite(mean_square[reference]).any():
         return False
@@ -456,8 +472,7 @@ def _significant(scan, reference: np.ndarray) -> bool:
     best = int(np.argmin(mean_square))
     if best == ref or not mean_square[best] > 0:
         return False
-    critical = float(fdtri(2 * counts[ref] - 2, 2 * counts[best] - 2, 1.0 - CLOCK_FALSE_ALARM / shifts.size))
-    return bool(mean_square[ref] / mean_square[best] > critical)
+    return bool(mean_square[ref] / mean_square[best] > _critical_ratio(scan, ref, best))
 
 
 def _shift_scan(t, f, t_inc, tilt, average_s, dt, lo_s, hi_s):
