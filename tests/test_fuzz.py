@@ -554,3 +554,12 @@ def test_imu_samples_lost_in_the_online_replay(command):
     gap: the replay starts over there and is accepted only as good as the clean run (0.26 mm against 0.25)."""
     code, err = fuzz(command, ("lost", (0.5544816731069238, 0.5544816731069238)))
     assert code == 0, err
+
+
+@pytest.mark.xfail(strict=True, reason="found by the slow fuzz, not fixed: a 0.1 s IMU clock jump (5 sample periods, "
+                   "under the 20-period gap rule) while the unit turns at 0.3 rad/s integrates 0.03 rad of rotation "
+                   "that never happened; the audit explains it as an unlisted w_z poly2 gyro effect, exit 0 (the same "
+                   "samples lost instead: the clean findings)")
+@pytest.mark.parametrize("command", ["audit imu"], indirect=True)
+def test_an_imu_clock_jump_while_turning_in_the_audit(command):
+    fuzz(command, ("gap", (0.3333333333333333, -1.0)))
