@@ -51,6 +51,18 @@ Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func
   vibration aliased differently into a 10 Hz inclinometer and 1 s accelerometer means moved a clean near-still
   TBM's apparent gain to 0.24.
 
+* clock jumps (:func:`clock_jump_problems`): an IMU gap while the inclinometer keeps streaming is samples lost (an
+  online estimator is right to start over) or the IMU's clock jumping (every later sample restamped: its data then
+  sit seconds out of step with the others').  The inclinometer reads the direction of the specific force averaged
+  over its own window, so its tilt and that of the accelerometer's mean over the same window agree sample by
+  sample at the right timing (vibration bursts, aliased alike into both) and not at another.  For the 60 s after
+  each gap the mean square of their difference (per axis demeaned: mounting, bias) is scanned over shifts of the
+  IMU's block from 0 to the whole gap (the stamps run ahead by what the gap holds beyond the samples lost), on the
+  IMU's sample grid; a shift that fits better than the stamps beyond chance (F test at 1e-3 over all the shifts
+  tried, Bonferroni) is a jump, refused with its size.  "The stamps" are every shift the 60 s before the gap are
+  consistent with by the same test (a constant latency is the audit's time_offset, not a jump), or, where they
+  cannot tell, any the estimator bridges as a gap.  Without motion both see, nothing tells: let through.
+
 Speed (a ship's speed log or GPS speed, :func:`speed_problems`), against the accelerometer on the hull:
 
 * the surge the speed shows is what the accelerometer's forward axis feels: ``f_x = dv/dt - g sin(pitch) +
