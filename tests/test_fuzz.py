@@ -563,3 +563,11 @@ def test_imu_samples_lost_in_the_online_replay(command):
 @pytest.mark.parametrize("command", ["audit imu"], indirect=True)
 def test_an_imu_clock_jump_while_turning_in_the_audit(command):
     fuzz(command, ("gap", (0.3333333333333333, -1.0)))
+
+
+@pytest.mark.parametrize("command", ["track"], indirect=True)
+def test_an_imu_clock_jump_past_the_end_of_the_aiding(command):
+    """Found by the slow fuzz: the IMU's stamps jump 13.3 s at half-way, so that most of its record lies after the
+    tracker's and inclinometer's last samples; the replay coasted on the IMU alone until the smoother's marginals
+    turned indeterminate (an internal error).  It now stops posing once every aiding sensor is silent."""
+    fuzz(command, ("gap", (0.5, 1.125)))

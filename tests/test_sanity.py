@@ -483,3 +483,19 @@ def test_an_imu_clock_jump_is_told_from_samples_lost_by_the_inclinometer(tbm_wit
     (line,) = clock_jumps(rec, jump_s=2.0, lost_s=1.0, incl_late_s=0.03)
     assert abs(float(line.split("its clock jumps ")[1].split(" s")[0]) - (2.0 - 0.03)) <= 0.005, line
     assert clock_jumps(rec) == []
+
+
+def test_a_silence_of_every_aiding_sensor_is_refused_in_batch(tbm_with_a_burst_after_16_s):
+    """Tracker and inclinometer both silent for 3 s (the IMU streaming): the batch smoother would coast on the IMU
+    alone (dead reckoning) across it; refused in one line naming the silence (the online replay starts over)."""
+    from selfcal.pipelines.tracker import check_sensors
+    rec = tbm_with_a_burst_after_16_s
+    t0 = rec.sensors["imu0"].t_ns[0]
+    sensors = dict(rec.sensors)
+    for name in ("tracker0", "incl0", "cam0"):
+        s = sensors[name]
+        keep = ((s.t_ns - t0) * 1e-9 < 14.0) | ((s.t_ns - t0) * 1e-9 >= 17.0)
+        sensors[name] = replace(s, t_ns=s.t_ns[keep], values={c: v[keep] for c, v in s.values.items()})
+    with pytest.raises(RecordingError, match=r"tracker0 and incl0 silent for 3(\.\d+)? s after t = 13\.9"):
+        check_sensors(replace(rec, sensors=sensors))
+    check_sensors(replace(rec, sensors=sensors), gaps_allowed=True)
