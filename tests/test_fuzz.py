@@ -125,7 +125,7 @@ def mutate(rec, mutation):
         payloads["array0/frames.npy"] = npy_bytes(_frames(rec).astype(np.int8))
     elif kind == "truncated file" and arg[0] in payloads:
         payloads[arg[0]] = payloads[arg[0]][:int(arg[1] * len(payloads[arg[0]]))]
-    elif kind in ("units", "dead column", "placeholder", "gap", "timestamps in us", "noise", "truncated"):
+    elif kind in ("units", "dead column", "placeholder", "gap", "lost", "timestamps in us", "noise", "truncated"):
         sensors["imu0"] = mutate_imu(sensors["imu0"], kind, arg)
     return replace(rec, sensors=sensors, payloads=payloads)
 
@@ -140,8 +140,12 @@ def mutate_imu(s, kind, arg):
         values[arg][:] = values[arg][0]
     elif kind == "placeholder":
         values[arg[0]][int(arg[1] * len(t_ns))] = 1e300
-    elif kind == "gap":
+    elif kind == "gap":  # the clock jumps: every later sample restamped (none lost)
         t_ns[int(arg[0] * len(t_ns)):] += int(10 ** arg[1] * 1e9)
+    elif kind == "lost":  # samples lost: none for 10^arg[1] s (the other sensors keep streaming)
+        t_start = t_ns[int(arg[0] * len(t_ns))]
+        keep = (t_ns < t_start) | (t_ns >= t_start + int(10 ** arg[1] * 1e9))
+        values, t_ns = {c: v[keep] for c, v in values.items()}, t_ns[keep]
     elif kind == "timestamps in us":
         t_ns = t_ns[0] + (t_ns - t_ns[0]) // 1000
     elif kind == "noise":
@@ -501,12 +505,13 @@ def command(request, tmp_path_factory):
     return cmd
 
 
-def fuzz(command, mutation):
+def fuzz(command, mutation) -> tuple[int, str]:
     folder = Path(tempfile.mkdtemp())
     try:
         argv, outs = command.command_line(write_recording(mutate(command.recording, mutation), folder / "rec"), folder)
         code, err = run(argv)
         check_outcome(code, err, folder, outs, command.good_enough, mutation)
+        return code, err
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 
@@ -531,8 +536,38 @@ def test_many_mutated_recordings(command):
     draw(command, command.examples[1])
 
 
-@pytest.mark.xfail(strict=True, reason="found by the fuzz, not fixed: after an IMU clock jump of 3.6 s the online "
-                   "replay starts over and is accepted with 2.3 mm RMS error (clean 0.25 mm)")
 @pytest.mark.parametrize("command", ["track"], indirect=True)
-def test_an_imu_clock_jump_in_the_online_replay(command):
-    fuzz(command, ("gap", (0.5544816731069238, 0.5544816731069238)))
+@pytest.mark.parametrize("fraction, log10_jump_s, jump", [(0.5544816731069238, 0.5544816731069238, "3.58 s"),
+                                                          (0.75, 0.75, "5.62 s")])
+def test_an_imu_clock_jump_in_the_online_replay(command, fraction, log10_jump_s, jump):
+    """Found by the fuzz: the IMU's stamps jump forward part-way while the tracker and inclinometer keep time; the
+    online replay started over at the "gap" and fused the IMU out of step with them (3.6 s: 2.3 mm RMS against
+    0.25 mm clean; 5.6 s at 75 %, where only 1.9 s of the IMU's record after the jump lies beside the
+    inclinometer's as stamped: 20 mm), exit 0.  A vibration burst after the jump lets the inclinometer tell."""
+    code, err = fuzz(command, ("gap", (fraction, log10_jump_s)))
+    assert code == 1 and f"imu0: its clock jumps {jump}" in err, err
+
+
+@pytest.mark.parametrize("command", ["track"], indirect=True)
+def test_imu_samples_lost_in_the_online_replay(command):
+    """The same gap with the samples lost instead (the tracker and inclinometer streaming through it) is a real
+    gap: the replay starts over there and is accepted only as good as the clean run (0.26 mm against 0.25)."""
+    code, err = fuzz(command, ("lost", (0.5544816731069238, 0.5544816731069238)))
+    assert code == 0, err
+
+
+@pytest.mark.xfail(strict=True, reason="found by the slow fuzz, not fixed: a 0.1 s IMU clock jump (5 sample periods, "
+                   "under the 20-period gap rule) while the unit turns at 0.3 rad/s integrates 0.03 rad of rotation "
+                   "that never happened; the audit explains it as an unlisted w_z poly2 gyro effect, exit 0 (the same "
+                   "samples lost instead: the clean findings)")
+@pytest.mark.parametrize("command", ["audit imu"], indirect=True)
+def test_an_imu_clock_jump_while_turning_in_the_audit(command):
+    fuzz(command, ("gap", (0.3333333333333333, -1.0)))
+
+
+@pytest.mark.parametrize("command", ["track"], indirect=True)
+def test_an_imu_clock_jump_past_the_end_of_the_aiding(command):
+    """Found by the slow fuzz: the IMU's stamps jump 13.3 s at half-way, so that most of its record lies after the
+    tracker's and inclinometer's last samples; the replay coasted on the IMU alone until the smoother's marginals
+    turned indeterminate (an internal error).  It now stops posing once every aiding sensor is silent."""
+    fuzz(command, ("gap", (0.5, 1.125)))

@@ -445,3 +445,57 @@ def test_quadratic_second_derivative_weights_match_savgol():
     np.testing.assert_allclose(ours, scipy_interior, rtol=0, atol=1e-9 * np.abs(scipy_interior).max())
     t = np.arange(n) * dt
     assert float(3.0 * t**2 @ w) == pytest.approx(6.0, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def tbm_with_a_burst_after_16_s():
+    """The fuzz's 30 s TBM run (a vibration burst follows t = 16.6 s: the inclinometer can time the IMU there)."""
+    from selfcal.sim.tracker import TrackerScenario
+    return TrackerScenario(duration_s=30.0, seed=5).measurements(seed=105)
+
+
+def clock_jumps(rec, jump_s: float = 0.0, lost_s: float = 0.0, incl_late_s: float = 0.0):
+    """clock_jump_problems on the run with the IMU's samples after t = 16.6 s restamped ``jump_s`` later and the
+    first ``lost_s`` of them dropped, the inclinometer stamped ``incl_late_s`` late throughout."""
+    from selfcal.core.sanity import clock_jump_problems
+    from selfcal.pipelines.tracker import MAX_IMU_GAP_S
+    imu, inc = rec.sensors["imu0"], rec.sensors["incl0"]
+    t0 = int(imu.t_ns[0])
+    t = (imu.t_ns - t0) * 1e-9
+    keep = (t < 16.6) | (t >= 16.6 + lost_s)
+    t = np.where(t >= 16.6, t + jump_s, t)[keep]
+    f = np.column_stack([imu.values[c] for c in ACCEL_COLUMNS])[keep]
+    return clock_jump_problems(t, f, (inc.t_ns - t0) * 1e-9 + incl_late_s,
+                               np.column_stack([inc.values["roll"], inc.values["pitch"]]), 0.02, MAX_IMU_GAP_S)
+
+
+def test_an_imu_clock_jump_is_told_from_samples_lost_by_the_inclinometer(tbm_with_a_burst_after_16_s):
+    """An IMU gap while the inclinometer keeps streaming: samples lost (restart right) or the IMU's clock jumping
+    (its data out of step with the others'), told apart by where the accelerometer's tilt matches the
+    inclinometer's, not by the gap's length.  The jump is measured to one IMU period (5 ms); a constant
+    inclinometer latency (30 ms) is no jump; a jump within a longer gap (1 s lost, then 2 s restamped) is found
+    as the 2 s less the latency (the run holds no motion before the gap to time the latency by)."""
+    rec = tbm_with_a_burst_after_16_s
+    (line,) = clock_jumps(rec, jump_s=3.585)
+    assert abs(float(line.split("its clock jumps ")[1].split(" s")[0]) - 3.585) <= 0.005, line
+    assert clock_jumps(rec, lost_s=3.585) == []
+    assert clock_jumps(rec, lost_s=3.585, incl_late_s=0.03) == []
+    (line,) = clock_jumps(rec, jump_s=2.0, lost_s=1.0, incl_late_s=0.03)
+    assert abs(float(line.split("its clock jumps ")[1].split(" s")[0]) - (2.0 - 0.03)) <= 0.005, line
+    assert clock_jumps(rec) == []
+
+
+def test_a_silence_of_every_aiding_sensor_is_refused_in_batch(tbm_with_a_burst_after_16_s):
+    """Tracker and inclinometer both silent for 3 s (the IMU streaming): the batch smoother would coast on the IMU
+    alone (dead reckoning) across it; refused in one line naming the silence (the online replay starts over)."""
+    from selfcal.pipelines.tracker import check_sensors
+    rec = tbm_with_a_burst_after_16_s
+    t0 = rec.sensors["imu0"].t_ns[0]
+    sensors = dict(rec.sensors)
+    for name in ("tracker0", "incl0", "cam0"):
+        s = sensors[name]
+        keep = ((s.t_ns - t0) * 1e-9 < 14.0) | ((s.t_ns - t0) * 1e-9 >= 17.0)
+        sensors[name] = replace(s, t_ns=s.t_ns[keep], values={c: v[keep] for c, v in s.values.items()})
+    with pytest.raises(RecordingError, match=r"tracker0 and incl0 silent for 3(\.\d+)? s after t = 13\.9"):
+        check_sensors(replace(rec, sensors=sensors))
+    check_sensors(replace(rec, sensors=sensors), gaps_allowed=True)

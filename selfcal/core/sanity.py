@@ -51,6 +51,18 @@ Other sensors, against the IMU on the same body (:func:`tracker_problems`, :func
   vibration aliased differently into a 10 Hz inclinometer and 1 s accelerometer means moved a clean near-still
   TBM's apparent gain to 0.24.
 
+* clock jumps (:func:`clock_jump_problems`): an IMU gap while the inclinometer keeps streaming is samples lost (an
+  online estimator is right to start over) or the IMU's clock jumping (every later sample restamped: its data then
+  sit seconds out of step with the others').  The inclinometer reads the direction of the specific force averaged
+  over its own window, so its tilt and that of the accelerometer's mean over the same window agree sample by
+  sample at the right timing (vibration bursts, aliased alike into both) and not at another.  For the 60 s after
+  each gap the mean square of their difference (per axis demeaned: mounting, bias) is scanned over shifts of the
+  IMU's block from 0 to the whole gap (the stamps run ahead by what the gap holds beyond the samples lost), on the
+  IMU's sample grid; a shift that fits better than the stamps beyond chance (F test at 1e-3 over all the shifts
+  tried, Bonferroni) is a jump, refused with its size.  "The stamps" are every shift the 60 s before the gap are
+  consistent with by the same test (a constant latency is the audit's time_offset, not a jump), or, where they
+  cannot tell, any the estimator bridges as a gap.  Without motion both see, nothing tells: let through.
+
 Speed (a ship's speed log or GPS speed, :func:`speed_problems`), against the accelerometer on the hull:
 
 * the surge the speed shows is what the accelerometer's forward axis feels: ``f_x = dv/dt - g sin(pitch) +
@@ -93,6 +105,8 @@ MAX_TRACKER_RANGE_M = 200.0
 TRACKER_WINDOW_S, TRACKER_ALLOWANCE_G, TRACKER_NOISE_SIGMAS = 0.5, 0.1, 5.0
 MAX_TILT_DISAGREEMENT_DEG, TILT_WINDOW_S = 10.0, 1.0
 GAIN_RANGE = (0.1, 10.0)  # units differ by 57 (deg) or 1000 (mrad); aliased vibration moved it to 0.24
+CLOCK_WINDOW_S, CLOCK_MIN_SAMPLES, CLOCK_FALSE_ALARM = 60.0, 3, 1e-3  # clock jumps: block, judged (F dof >= 4), p
+CLOCK_CHUNK = 256  # shifts evaluated at once (memory: chunk x inclinometer samples)
 SPEED_WINDOW_S, MIN_SPEED_WINDOWS = 60.0, 10  # three periods of the longest pitch (20 s); t-statistic dof >= 8
 SURGE_SLOPE_RANGE, SURGE_SLOPE_RELATIVE_SIGMA = (0.72, 1.39), 0.04  # 1/sqrt(1.944) either way; judged at sigma <= 4 %
 SPEED_UNITS = ((1.0 / 1.943844, "knots? multiply by 0.514444"), (1.0 / 3.6, "km/h? divide by 3.6"),
@@ -396,3 +410,110 @@ def speed_problems(t_speed_s, speed, t_imu_s, f_x_m_s2) -> tuple[list[str], str 
     return [f"its speed changes {1.0 / slope if slope else np.inf:.3g} x as fast as the accelerometer's surge "
             f"(slope of f_x on dv/dt {slope:.3g} +- {sigma:.2g} over {n} windows of {SPEED_WINDOW_S:g} s; 1 "
             f"expected): {hint}"], None
+
+
+
+def clock_jump_problems(t_imu_s, f_B_m_s2, t_incl_s, tilt_incl_rad, average_s: float, min_gap_s: float,
+                        window_s: float = CLOCK_WINDOW_S) -> list[str]:
+    """One line per IMU gap longer than ``min_gap_s`` after which the IMU's stamps no longer agree in time with
+    the inclinometer's (``t_*_s`` on one clock, s; module docstring): a clock jump, not data lost.  Gaps where
+    the inclinometer cannot tell (no motion it and the accelerometer both see) are let through."""
+    t = np.asarray(t_imu_s, dtype=float)
+    f = np.asarray(f_B_m_s2, dtype=float)
+    t_inc, tilt = np.asarray(t_incl_s, dtype=float), np.asarray(tilt_incl_rad, dtype=float)
+    if t.size < 3 or t_inc.size < CLOCK_MIN_SAMPLES:
+        return []
+    dt = float(np.median(np.diff(t)))
+    ends = np.flatnonzero(np.diff(t) > min_gap_s)  # the last sample before each gap
+    bounds = np.concatenate([[0], ends + 1, [t.size]])
+    out = []
+    for g, i in enumerate(ends):
+        gap_s = float(t[i + 1] - t[i])
+        before = slice(max(bounds[g], int(np.searchsorted(t, t[i] - window_s))), i + 1)
+        after = slice(i + 1, min(bounds[g + 2], int(np.searchsorted(t, t[i + 1] + window_s))))
+        # the reference: the shifts the block before the gap is consistent with (a latency, the audit's
+        # time_offset, not a jump); where it cannot tell, any the estimator would bridge as a gap
+        pre = _shift_scan(t[before], f[before], t_inc, tilt, average_s, dt, -min_gap_s, min_gap_s)
+        consistent = _consistent(pre) if pre is not None else np.zeros(0, dtype=bool)
+        lo, hi = (pre[0][consistent].min(), pre[0][consistent].max()) if consistent.any() else (-min_gap_s, min_gap_s)
+        reference = 0.0 if lo <= 0.0 <= hi else float(pre[0][np.argmin(pre[1])])  # as stamped, unless shown off
+        # after the gap the stamps run ahead by what the gap holds beyond the samples lost: 0 to the whole gap
+        post = _shift_scan(t[after], f[after], t_inc, tilt, average_s, dt, lo - 0.5 * dt, hi + gap_s)
+        if post is None:
+            continue
+        shifts, mean_square, _ = post
+        in_reference = (shifts >= lo - 0.5 * dt) & (shifts <= hi + 0.5 * dt)
+        if not _significant(post, in_reference):
+            continue
+        best = int(np.argmin(mean_square))
+        jump = float(shifts[best]) - reference
+        rms_stamped, rms = np.sqrt(np.min(mean_square[in_reference])), np.sqrt(mean_square[best])
+        out.append(f"its clock jumps {jump:.4g} s at its {gap_s:.4g} s gap after t = {t[i] - t[0]:.6g} s: after the "
+                   f"gap its accelerometer's tilt matches the inclinometer's {jump:.4g} s off its stamps (RMS "
+                   f"{1e3 * rms_stamped:.2g} mrad as stamped, {1e3 * rms:.2g} shifted): samples restamped, not "
+                   "lost; correct its timestamps after the gap, or split the recording there")
+    return out
+
+
+def _critical_ratio(scan, ref: int, best: int) -> float:
+    """The F test's critical ratio of two mean squares of a scan at CLOCK_FALSE_ALARM over every shift tried
+    (Bonferroni)."""
+    from scipy.special import fdtri  # the F distribution's quantile (scipy.stats costs seconds to import)
+
+    shifts, _, counts = scan
+    return float(fdtri(2 * counts[ref] - 2, 2 * counts[best] - 2, 1.0 - CLOCK_FALSE_ALARM / shifts.size))
+
+
+def _consistent(scan) -> np.ndarray:
+    """The shifts of a scan (:func:`_shift_scan`) that fit not significantly worse than its best (F test)."""
+    shifts, mean_square, _ = scan
+    if not np.isfinite(mean_square).any() or not mean_square.min() > 0:
+        return np.zeros(shifts.size, dtype=bool)
+    best = int(np.argmin(mean_square))
+    return np.array([np.isfinite(m) and m / mean_square[best] <= _critical_ratio(scan, k, best)
+                     for k, m in enumerate(mean_square)])
+
+
+def _significant(scan, reference: np.ndarray) -> bool:
+    """Whether the best shift of a scan fits better than the best within ``reference`` (a mask over its shifts)
+    beyond chance (F test)."""
+    shifts, mean_square, counts = scan
+    if not np.isfinite(mean_square[reference]).any():
+        return False
+    ref = int(np.flatnonzero(reference)[np.argmin(mean_square[reference])])
+    best = int(np.argmin(mean_square))
+    if best == ref or not mean_square[best] > 0:
+        return False
+    return bool(mean_square[ref] / mean_square[best] > _critical_ratio(scan, ref, best))
+
+
+def _shift_scan(t, f, t_inc, tilt, average_s, dt, lo_s, hi_s):
+    """The IMU block (``t``, ``f``) read ``shift`` s off its stamps (IMU stamp = inclinometer time + shift), for
+    shifts in [lo_s, hi_s] that are multiples of the IMU's sample period ``dt``: the mean square of the per-axis demeaned
+    difference between the inclinometer's tilt and the tilt of the accelerometer's mean over the inclinometer's
+    averaging window.  Returns (shifts, mean squares (inf where too few inclinometer samples to judge), their
+    counts of inclinometer samples), or None when the block is too short."""
+    if t.size < 2:
+        return None
+    window = max(average_s, dt)
+    c = np.vstack([np.zeros(3), np.cumsum(f, axis=0)])
+    shifts = dt * np.arange(np.ceil(lo_s / dt - 1e-9), np.floor(hi_s / dt + 1e-9) + 1)
+    first, last = np.searchsorted(t_inc, [t[0] + window - shifts.max(), t[-1] + dt - shifts.min()])
+    t_inc, tilt = t_inc[first:last], tilt[first:last]  # every inclinometer sample some shift puts in the block
+    mean_square, counts = np.full(shifts.size, np.inf), np.zeros(shifts.size, dtype=int)
+    for k in range(0, shifts.size, CLOCK_CHUNK):  # (shifts, samples) at once, a chunk of shifts at a time
+        tau = t_inc[None, :] + shifts[k:k + CLOCK_CHUNK, None]  # the inclinometer's samples on the IMU's stamps
+        lo, hi = np.searchsorted(t, tau - window - 1e-9), np.searchsorted(t, tau - 1e-9)
+        ok = (hi > lo) & (tau - window >= t[0]) & (tau <= t[-1] + dt)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f_mean = (c[hi] - c[lo]) / (hi - lo)[..., None]
+            r = np.stack(tilt_from_specific_force(f_mean.reshape(-1, 3)), axis=-1).reshape(*tau.shape, 2) - tilt
+        r = np.where(ok[..., None], r, 0.0)
+        n = ok.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r_mean = r.sum(axis=1) / n[:, None]
+            ms = (np.sum(r ** 2, axis=(1, 2)) - n * np.sum(r_mean ** 2, axis=1)) / (2 * n)  # per-axis demeaned
+        judged = n >= CLOCK_MIN_SAMPLES
+        mean_square[k:k + CLOCK_CHUNK] = np.where(judged, ms, np.inf)
+        counts[k:k + CLOCK_CHUNK] = n
+    return shifts, mean_square, counts

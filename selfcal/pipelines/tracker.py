@@ -17,7 +17,8 @@ import numpy as np
 
 from selfcal.core.inertial import STANDARD_GRAVITY_M_S2
 from selfcal.core.progress import quiet
-from selfcal.core.sanity import accelerometer_tilt_at, coverage_problems, inclinometer_problems, tracker_problems
+from selfcal.core.sanity import (accelerometer_tilt_at, clock_jump_problems, coverage_problems, inclinometer_problems,
+                                 tracker_problems)
 from selfcal.graphs.tracker import (UNGATED, GatingOptions, SensorNoise, TrackerEstimator, TrackerOptions,
                                     batch_smooth)
 from selfcal.io.camera import read_camera
@@ -32,6 +33,12 @@ MODES = ("batch", "isam2", "fixed-lag")
 # position by 1.7 mm and a 0.56 s one broke the inclinometer's bookkeeping (found by tests/test_fuzz.py).  Tighter
 # than the recording's general rule (1 s), which real loggers' 0.3-0.5 s stalls must pass.
 MAX_IMU_GAP_S = 0.25
+# The longest silence of every aiding sensor (tracker and inclinometer) the estimator coasts through on the IMU
+# alone: as long as the IMU gap it bridges (keyframes 0.1 s apart).  A beam break is no such silence (the
+# inclinometer goes on); once both are silent the poses are dead reckoning: 1.9 s of it put the pose 1.9 mm RMS
+# off (0.25 mm aided), and 8 s made the smoother's marginals indeterminate (an internal error; tests/test_fuzz.py).
+MAX_AIDING_GAP_S = MAX_IMU_GAP_S
+AIDING = ("tracker0", "incl0")
 _GYRO, _ACCEL = operator.itemgetter(*GYRO_COLUMNS), operator.itemgetter(*ACCEL_COLUMNS)  # 200 Hz: every us counts
 REQUIRED = {"imu0": GYRO_COLUMNS + ACCEL_COLUMNS, "tracker0": ("x", "y", "z"), "incl0": ("roll", "pitch"),
             "cam0": ("u", "v")}
@@ -81,12 +88,27 @@ class OnlineTracker:
         self.latency_s = LatencyHistogram()  # per keyframe output; bounded: a live run lasts hours
         self._last_imu_ns: int | None = None
         self._gap_ns = int(1e9 * MAX_IMU_GAP_S)
+        self._last_aiding_ns: int | None = None
+        self._aiding_gap_ns = int(1e9 * MAX_AIDING_GAP_S)
+        self._coasting = False  # every aiding sensor silent too long: the IMU is set aside until one reports
 
     def push(self, sensor_name: str, t_ns: int, values: dict[str, float]) -> list[dict]:
         start = time.perf_counter()
+        if sensor_name in AIDING:
+            if self._coasting:
+                self._coasting = False
+                self._restart(t_ns, f"{sensor_name} reports again after every aiding sensor was silent")
+            self._last_aiding_ns = t_ns
         if sensor_name == "imu0":
+            if self._last_aiding_ns is not None and t_ns - self._last_aiding_ns > self._aiding_gap_ns:
+                if not self._coasting:
+                    self._coasting = True
+                    log.warning("tracker0 and incl0: silent for over %g s before t = %d ns: no pose until one reports "
+                                "again (the IMU alone is dead reckoning)", MAX_AIDING_GAP_S, t_ns)
+                self._last_imu_ns = t_ns
+                return []
             if self._last_imu_ns is not None and t_ns - self._last_imu_ns > self._gap_ns:
-                self._restart(t_ns)
+                self._restart(t_ns, f"imu0: {(t_ns - self._last_imu_ns) * 1e-9:.3g} s without samples")
             self._last_imu_ns = t_ns
         e = self.estimator
         try:
@@ -116,12 +138,10 @@ class OnlineTracker:
         (:func:`check_agreement`)."""
         check_agreement("the stream", self.estimator.counts)
 
-    def _restart(self, t_ns: int) -> None:
-        """After an IMU gap the state cannot be propagated across: start over (a new estimator, initialised again
-        from the next samples), and say so once."""
-        gap_s = (t_ns - self._last_imu_ns) * 1e-9
-        log.warning("imu0: %.3g s without samples before t = %d ns: the estimator starts over (no pose is bridged "
-                    "across the gap)", gap_s, t_ns)
+    def _restart(self, t_ns: int, reason: str) -> None:
+        """After an IMU gap (or a silence of every aiding sensor) the state cannot be propagated across: start over
+        (a new estimator, initialised again from the next samples), and say so once."""
+        log.warning("%s before t = %d ns: the estimator starts over (no pose is bridged across the gap)", reason, t_ns)
         self.restarts += 1
         self.estimator = TrackerEstimator(self.noise, self.options)
 
@@ -169,6 +189,13 @@ def check_sensors(recording: Recording, gaps_allowed: bool = False) -> None:
                              f"{(imu.t_ns[i] - t0_ns) * 1e-9:.6g} s: the tracker bridges at most {MAX_IMU_GAP_S:g} s "
                              "(its keyframes are 0.1 s apart); split the recording at the gap")
     t_imu = (imu.t_ns - t0_ns) * 1e-9
+    t_aiding = np.sort(np.concatenate([recording.sensors[name].t_ns for name in AIDING]))
+    silences = np.diff(t_aiding) * 1e-9
+    if not gaps_allowed and silences.max(initial=0.0) > MAX_AIDING_GAP_S:
+        i = int(np.argmax(silences))
+        raise RecordingError(f"{recording.path}: tracker0 and incl0 silent for {silences[i]:.3g} s after t = "
+                             f"{(t_aiding[i] - t0_ns) * 1e-9:.6g} s: the IMU alone coasts at most {MAX_AIDING_GAP_S:g} "
+                             "s; split the recording at the gap")
     for name in ("tracker0", "incl0"):
         problems = coverage_problems(t_imu, (recording.sensors[name].t_ns - t0_ns) * 1e-9, name)
         if problems:
@@ -187,6 +214,13 @@ def check_sensors(recording: Recording, gaps_allowed: bool = False) -> None:
                                      accelerometer_tilt_at(t_inc, t_imu, imu.accel_m_s2))
     if problems:
         raise RecordingError(f"{recording.path}/incl0: {problems[0]}")
+    if gaps_allowed:  # a gap the online estimator starts over at must be samples lost, not the IMU's clock
+        # jumping while the others keep time: its data after the gap would be fused out of step with theirs
+        average_s = noise_from_meta({"incl0": inc.meta}).incl_average_s
+        problems = clock_jump_problems(t_imu, imu.accel_m_s2, t_inc, np.column_stack([inc.values["roll"],
+                                       inc.values["pitch"]]), average_s, MAX_IMU_GAP_S)
+    if problems:
+        raise RecordingError(f"{recording.path}/imu0: {problems[0]}")
 
 
 def _sensor_events(name, rank, sensor):
