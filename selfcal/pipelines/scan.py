@@ -23,6 +23,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from selfcal.core.progress import quiet
+from selfcal.core import so3
 from selfcal.core.sanity import imu_problems
 from selfcal.core.solve import DegenerateDataError
 from selfcal.graphs import scan as gs
@@ -281,6 +282,128 @@ def _points_near(points: np.ndarray, seeds: np.ndarray, radius_m: float, min_bou
         near = np.flatnonzero(wanted[pos] == key)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[near]))
     return near, o3d.geometry.KDTreeFlann(cloud)
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    every_clocks: int = 10  # profile pairs (m, m + every_clocks): 10 clocks = 0.2 s, 10 cm of track at 0.5 m/s
+    max_correspondence_m: float = 0.3  # profiles of a push-broom scanner do not overlap: the next profile is
+    # every_clocks * speed / clock_hz away along the track, and every neighbour is at least that far
+    tangent_half_window: int = 3  # points either side for a profile's tangent (its in-plane normal)
+    max_tangent_gap_m: float = 0.05  # neighbours further apart than this along the profile: an edge, no normal
+    sphere_clearance_radii: float = 2.5  # points this close to a detected sphere (in radii) are left out
+    relative_floor: float = 1e-2  # information eigen-directions below this fraction of the largest: unseen
+
+
+def _profile_normals(p_I: np.ndarray, plane_normal_I: np.ndarray, half: int, max_gap_m: float):
+    """In-plane unit normals of one profile (points in pixel order): the surface taken as extruded across the
+    scan plane (a tunnel's vault and floor), the normal is perpendicular to the profile's tangent and to the
+    plane's normal.  Returns (normals (N, 3), valid (N,)): no normal across a gap (an edge, an occlusion)."""
+    n = len(p_I)
+    valid = np.zeros(n, dtype=bool)
+    normals = np.zeros((n, 3))
+    if n < 2 * half + 1:
+        return normals, valid
+    ahead, behind = p_I[2 * half:], p_I[:-2 * half]
+    step = np.linalg.norm(np.diff(p_I, axis=0), axis=1)
+    gaps = np.convolve(step > max_gap_m, np.ones(2 * half, dtype=int), mode="valid") > 0
+    tangent = ahead - behind
+    normal = np.cross(tangent, plane_normal_I)
+    length = np.linalg.norm(normal, axis=1)
+    ok = ~gaps & (length > 0)
+    normals[half:n - half][ok] = normal[ok] / length[ok, None]
+    valid[half:n - half] = ok
+    return normals, valid
+
+
+def _point_to_plane_icp(source, target, init, options: RegistrationOptions, iterations: int = 20):
+    """Point-to-plane ICP moving only along the directions the correspondences see: ``(a_T_b, L)`` or None.
+
+    ``open3d.pipelines.registration.registration_icp`` solves all six directions every iteration; between two
+    profiles of an extruded surface three of them (along the track, and the two tilts out of the scan plane)
+    have no information, its solve wanders there (measured: 70 mrad of yaw, 30 cm along the track) and the
+    wandering spoils the correspondences of the seen directions.  Here each Gauss-Newton step is the
+    least-squares step restricted to the eigen-directions of ``J^T J`` above ``relative_floor`` (the null
+    directions stay at the INS's relative pose); correspondences from open3d's KD-tree.
+    """
+    tree = o3d.geometry.KDTreeFlann(target)
+    P, Q, N = (np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals))
+    Z = np.array(init, dtype=float)
+    for _ in range(iterations):
+        moved = P @ Z[:3, :3].T + Z[:3, 3]
+        match = np.full(len(P), -1)
+        for i, p in enumerate(moved):
+            k, idx, d2 = tree.search_knn_vector_3d(p, 1)
+            if k and d2[0] < options.max_correspondence_m**2:
+                match[i] = idx[0]
+        ok = match >= 0
+        if ok.sum() < 50:
+            return None
+        src, q, n = P[ok], Q[match[ok]], N[match[ok]]
+        e = np.einsum("ij,ij->i", n, moved[ok] - q)
+        L = ms.observable_square_root(ms.point_to_plane_information(src, n, Z, 1.0), options.relative_floor)
+        n_b = n @ Z[:3, :3]
+        G = np.concatenate([np.cross(src, n_b), n_b], axis=1)
+        # step within the seen subspace: xi = V c, min |G V c + e|  (V: the rows of L, normalised)
+        V = (L / np.linalg.norm(L, axis=1, keepdims=True)).T
+        c = np.linalg.lstsq(G @ V, -e, rcond=None)[0]
+        xi = V @ c
+        step = np.eye(4)
+        step[:3, :3] = so3.exp(xi[:3])
+        step[:3, 3] = xi[3:]  # first order in xi: the steps are micro-radians and millimetres
+        Z = Z @ step
+        if np.linalg.norm(xi) < 1e-9:
+            break
+    moved = P @ Z[:3, :3].T + Z[:3, 3]
+    e = np.einsum("ij,ij->i", n, moved[ok] - q)
+    sigma = np.sqrt(np.sum(e**2) / (len(e) - len(L)))
+    return Z, ms.observable_square_root(ms.point_to_plane_information(src, n, Z, sigma), options.relative_floor)
+
+
+def register_frames(data: ScanData, problem: gs.ScanProblem,
+                    options: RegistrationOptions = RegistrationOptions()) -> list:
+    """Profiles of the scan registered pairwise by point-to-plane ICP (open3d): ``FrameRegistration`` list.
+
+    A line scanner's frame is one profile; a frame placed by the INS over several clocks would carry the INS's
+    own velocity error into the measurement (measured: registration NEES growing with the drift to ~10^3), so
+    each frame is a single clock, rigid by construction.  Profile ``b = a + every_clocks`` is registered onto
+    profile ``a`` from the INS's relative pose, with the target's in-plane normals
+    (:func:`_profile_normals`: the scene taken as extruded across the scan plane, as a tunnel is).  The
+    information (:func:`selfcal.models.scan.point_to_plane_information`) is scaled by the variance of the
+    converged point-to-plane residuals (``sum e^2 / (N - 6)``: the point noise of both profiles and whatever of
+    the surface the model does not fit) and kept on its seen directions only.  The spheres are cut out.
+    """
+    R, r = ms.interpolate_poses(data.clock_t_s, data.ins_t_s, data.ins_R, data.ins_r)
+    plane_normal_I = data.imu_R_vision[:, 1]  # the scan plane is y_V = 0
+    out = []
+    for a in range(0, len(data.clock_t_s) - options.every_clocks, options.every_clocks):
+        b = a + options.every_clocks
+        clouds = []
+        for m in (a, b):
+            p_I = data.points_V[m] @ data.imu_R_vision.T + data.imu_t_vision
+            p_W = p_I @ R[m].T + r[m]
+            far = np.ones(len(p_I), dtype=bool)
+            for c in problem.centers0:
+                far &= np.einsum("ij,ij->i", p_W - c, p_W - c) > (options.sphere_clearance_radii * data.radius_m) ** 2
+            normals, valid = _profile_normals(p_I, plane_normal_I, options.tangent_half_window,
+                                              options.max_tangent_gap_m)
+            keep = far & valid
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_I[keep]))
+            cloud.normals = o3d.utility.Vector3dVector(normals[keep])
+            clouds.append(cloud)
+        target, source = clouds
+        if len(target.points) < 50 or len(source.points) < 50:
+            continue
+        init = np.eye(4)
+        init[:3, :3] = R[a].T @ R[b]
+        init[:3, 3] = R[a].T @ (r[b] - r[a])
+        fit = _point_to_plane_icp(source, target, init, options)
+        if fit is None:
+            continue
+        Z, sqrt_information = fit
+        out.append(gs.FrameRegistration(a, b, Z, sqrt_information))
+    log.info("registration: %d profile pairs", len(out))
+    return out
 
 
 def scan_problem(data: ScanData, detection: DetectionOptions = DetectionOptions()) -> gs.ScanProblem:
