@@ -324,19 +324,16 @@ def _point_to_plane_icp(source, target, init, options: RegistrationOptions, iter
     have no information, its solve wanders there (measured: 70 mrad of yaw, 30 cm along the track) and the
     wandering spoils the correspondences of the seen directions.  Here each Gauss-Newton step is the
     least-squares step restricted to the eigen-directions of ``J^T J`` above ``relative_floor`` (the null
-    directions stay at the INS's relative pose); correspondences from open3d's KD-tree.
+    directions stay at the INS's relative pose); correspondences from scipy's KD-tree (vectorised queries).
     """
-    tree = o3d.geometry.KDTreeFlann(target)
+    from scipy.spatial import cKDTree
     P, Q, N = (np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals))
+    tree = cKDTree(Q)
     Z = np.array(init, dtype=float)
     for _ in range(iterations):
         moved = P @ Z[:3, :3].T + Z[:3, 3]
-        match = np.full(len(P), -1)
-        for i, p in enumerate(moved):
-            k, idx, d2 = tree.search_knn_vector_3d(p, 1)
-            if k and d2[0] < options.max_correspondence_m**2:
-                match[i] = idx[0]
-        ok = match >= 0
+        _, match = tree.query(moved, distance_upper_bound=options.max_correspondence_m)
+        ok = match < len(Q)  # scipy marks "none within the bound" with len(Q)
         if ok.sum() < 50:
             return None
         src, q, n = P[ok], Q[match[ok]], N[match[ok]]
@@ -518,6 +515,10 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
     progress("sphere detection (set B)")
     problem = scan_problem(data)
     lap("sphere detection (set B)")
+    if model.registration and not online:  # the iSAM2 path takes the spheres only
+        progress("frame registration")
+        problem = replace(problem, registrations=register_frames(data, problem))
+        lap("frame registration")
     progress("factor graph" + (" (iSAM2)" if online else ""))
     problem, solution, theta = solve_scan(data, problem, model, online, iterations)
     lap("factor graph")
