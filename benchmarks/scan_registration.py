@@ -62,6 +62,43 @@ def registration_nees(registrations, sim, jitter_sigmas) -> list[float]:
     return out
 
 
+def information_bound(scenario: ScanScenario, layouts: int) -> dict:
+    """What ideal registration could give at most: the planner's linear covariance analysis (no data) with
+    relative-pose information between poses 1 s apart added on chosen directions of the INS error state
+    (10 urad, 20 um per pair: far better than the ICP pairs measure), predicted spacing RMS per case."""
+    from selfcal.core.solve import dense_jacobian
+    from selfcal.pipelines.scan import planned_problem
+    prior = np.asarray(scenario.error_sigmas, float)
+    jitter = np.r_[np.full(3, scenario.ins_jitter_rad), np.full(3, scenario.ins_jitter_m)]
+    rows = {"psi_x": (0, 1e-5), "psi_y": (1, 1e-5), "psi_z": (2, 1e-5), "dr_x": (6, 2e-5), "dr_y": (7, 2e-5),
+            "dr_z": (8, 2e-5)}
+    cases = {"spheres only": [], "across the track (psi_x, dr_y, dr_z)": ["psi_x", "dr_y", "dr_z"],
+             "all but along the track": ["psi_x", "psi_y", "psi_z", "dr_y", "dr_z"],
+             "along the track only (dr_x)": ["dr_x"], "full 6 dof": list(rows)}
+    out = {name: [] for name in cases}
+    for seed in range(layouts):
+        problem = planned_problem(scenario, prior, jitter, seed=seed)
+        S = len(problem.centers0)
+        values = gtsam.Values()
+        values.insert(gs.THETA, np.zeros(15))
+        for j, c in enumerate(problem.centers0):
+            values.insert(gs.O_KEY(j), np.asarray(c, float))
+        A, _, offsets = dense_jacobian(gs.build_collapsed(problem)[0], values)
+        keys = [gs.THETA] + [gs.O_KEY(j) for j in range(S)]
+        A = A[:, np.concatenate([np.arange(offsets[k], offsets[k] + values.atVector(k).size) for k in keys])]
+        Phi = problem.sensitivity.at(np.arange(problem.clock_t_s[0], problem.clock_t_s[-1], 1.0))[:, :, :15] * prior
+        pairs = np.array(np.triu_indices(S, 1)).T
+        for name, directions in cases.items():
+            H = A.T @ A
+            for d in directions:
+                row, sigma = rows[d]
+                D = np.diff(Phi[:, row, :], axis=0)  # relative: consecutive poses 1 s apart
+                H[:15, :15] += D.T @ D / sigma**2
+            _, s = ms.distance_sigmas(problem.centers0, np.linalg.inv(H)[15:, 15:], pairs)
+            out[name].append(float(np.sqrt(np.mean(s**2))))
+    return {name: float(np.sqrt(np.mean(np.square(v)))) * 1e3 for name, v in out.items()}
+
+
 def one_seed(task) -> dict:
     scenario, seed = task
     from selfcal.sim.scan import simulate_scan
@@ -95,6 +132,7 @@ def main():
     parser.add_argument("--seeds", type=int, help="scans (default 20; --quick 3)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--first-seed", type=int, default=100)
+    parser.add_argument("--bound-layouts", type=int, default=3, help="layouts for the ideal-registration bound")
     _schema.add_arguments(parser, "scan_registration")
     args = parser.parse_args()
     started = time.perf_counter()
@@ -135,6 +173,11 @@ def main():
     extra["registration"].update({"pairs_per_scan": float(np.mean(per("registration", "pairs"))),
                                   "seen_directions_per_pair": float(np.mean(per("registration", "seen_directions"))),
                                   "icp_seconds_per_scan": float(np.mean(per("registration", "icp_seconds")))})
+    bound = information_bound(scenario, args.bound_layouts)
+    for name, v in bound.items():
+        rows.append(_schema.row(f"scan: planner-predicted spacing RMS with ideal registration, {name}", "mm", v,
+                                bound["spheres only"], note=f"{args.bound_layouts} layouts; baseline: spheres only"))
+    extra["ideal_registration_bound_mm"] = bound
     extra["per_seed"] = [{k: ({kk: vv for kk, vv in v.items() if kk != "z"} if isinstance(v, dict) else v)
                           for k, v in r.items()} for r in runs]
     _schema.write(args.json, "scan_registration", "scan", args.quick, time.perf_counter() - started, rows, extra)
