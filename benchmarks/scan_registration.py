@@ -129,7 +129,7 @@ def one_seed(task) -> dict:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, help="scans (default 20; --quick 3)")
+    parser.add_argument("--seeds", type=int, help="scans (default 20; --quick 2)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--first-seed", type=int, default=100)
     parser.add_argument("--bound-layouts", type=int, default=3, help="layouts for the ideal-registration bound")
@@ -137,7 +137,7 @@ def main():
     args = parser.parse_args()
     started = time.perf_counter()
     scenario = QUICK if args.quick else SCENARIO
-    seeds = args.seeds or (3 if args.quick else 20)
+    seeds = args.seeds or (2 if args.quick else 20)
     runs = []
     with Pool(args.workers) as pool:
         for r in pool.imap_unordered(one_seed, [(scenario, s) for s in range(args.first_seed, args.first_seed + seeds)]):
@@ -173,7 +173,7 @@ def main():
     extra["registration"].update({"pairs_per_scan": float(np.mean(per("registration", "pairs"))),
                                   "seen_directions_per_pair": float(np.mean(per("registration", "seen_directions"))),
                                   "icp_seconds_per_scan": float(np.mean(per("registration", "icp_seconds")))})
-    bound = information_bound(scenario, args.bound_layouts)
+    bound = information_bound(scenario, 1 if args.quick else args.bound_layouts)
     for name, v in bound.items():
         rows.append(_schema.row(f"scan: planner-predicted spacing RMS with ideal registration, {name}", "mm", v,
                                 bound["spheres only"], note=f"{args.bound_layouts} layouts; baseline: spheres only"))
