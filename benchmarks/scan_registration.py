@@ -173,10 +173,11 @@ def main():
     extra["registration"].update({"pairs_per_scan": float(np.mean(per("registration", "pairs"))),
                                   "seen_directions_per_pair": float(np.mean(per("registration", "seen_directions"))),
                                   "icp_seconds_per_scan": float(np.mean(per("registration", "icp_seconds")))})
-    bound = information_bound(scenario, 1 if args.quick else args.bound_layouts)
+    layouts = 1 if args.quick else args.bound_layouts
+    bound = information_bound(scenario, layouts)
     for name, v in bound.items():
         rows.append(_schema.row(f"scan: planner-predicted spacing RMS with ideal registration, {name}", "mm", v,
-                                bound["spheres only"], note=f"{args.bound_layouts} layouts; baseline: spheres only"))
+                                bound["spheres only"], note=f"{layouts} layouts; baseline: spheres only"))
     extra["ideal_registration_bound_mm"] = bound
     extra["per_seed"] = [{k: ({kk: vv for kk, vv in v.items() if kk != "z"} if isinstance(v, dict) else v)
                           for k, v in r.items()} for r in runs]
