@@ -487,8 +487,9 @@ def point_to_plane_information(source_p, target_n, target_a_T_source_b, residual
 
     The residual of a correspondence is ``e_i = n_i . (Z Exp(xi) p_i - q_i)`` with ``Z = (R, t)`` the relative
     pose ``a_T_b`` (source frame b into target frame a), ``p_i`` a source point, ``q_i``, ``n_i`` its target
-    point and unit normal; ``de_i/dxi = [(p_i x R^T n_i)^T, (R^T n_i)^T]``.  With white residuals of 1-sigma
-    ``s`` (the point-to-plane noise of both clouds) the Gauss-Newton information is ``sum g_i g_i^T / s^2``.
+    point and unit normal; ``de_i/dxi = [(p_i x R^T n_i)^T, (R^T n_i)^T]``.  With independent residuals of
+    1-sigma ``s_i`` (the point-to-plane noise of both points) the Gauss-Newton information is
+    ``sum g_i g_i^T / s_i^2``.
 
     Unlike ``open3d.pipelines.registration.get_information_matrix_from_point_clouds`` (point-to-point: three
     rows per correspondence, unit weight) this keeps only the normal component: on a surface extruded along the
@@ -500,12 +501,13 @@ def point_to_plane_information(source_p, target_n, target_a_T_source_b, residual
     source_p : (N, 3) source points (frame b) that found a correspondence, m.
     target_n : (N, 3) unit normals of their target points (frame a).
     target_a_T_source_b : (4, 4) the registered relative pose.
-    residual_sigma_m : 1-sigma of one point-to-plane residual, m.
+    residual_sigma_m : 1-sigma of the point-to-plane residuals, m: one for all, or (N,).
     """
     Z = np.asarray(target_a_T_source_b, float)
     n_b = np.asarray(target_n, float) @ Z[:3, :3]  # rows R^T n_i
     g = np.concatenate([np.cross(np.asarray(source_p, float), n_b), n_b], axis=1)
-    return g.T @ g / residual_sigma_m**2
+    g = g / np.reshape(np.asarray(residual_sigma_m, float), (-1, 1))
+    return g.T @ g
 
 
 def observable_square_root(information, relative_floor: float = 1e-6) -> np.ndarray:

@@ -286,7 +286,11 @@ def _points_near(points: np.ndarray, seeds: np.ndarray, radius_m: float, min_bou
 
 @dataclass(frozen=True)
 class RegistrationOptions:
-    every_clocks: int = 10  # profile pairs (m, m + every_clocks): 10 clocks = 0.2 s, 10 cm of track at 0.5 m/s
+    every_clocks: int = 3  # profile pairs (m, m + every_clocks), chained: 3 clocks = 3 cm of track at 0.5 m/s.
+    # The in-plane normals take the surface as extruded across the scan plane; the vehicle's yaw and pitch tilt
+    # the plane by milliradians against the tunnel's axis, an error of (gap x tilt) in every pair (measured
+    # registration NEES / dof at the true poses, 10 m scans: 1.5 with 10 clocks, 2.0 with 0.3 deg of pitch;
+    # 1.1-1.2 with 3 clocks)
     max_correspondence_m: float = 0.3  # profiles of a push-broom scanner do not overlap: the next profile is
     # every_clocks * speed / clock_hz away along the track, and every neighbour is at least that far
     tangent_half_window: int = 3  # points either side for a profile's tangent (its in-plane normal)
@@ -316,45 +320,51 @@ def _profile_normals(p_I: np.ndarray, plane_normal_I: np.ndarray, half: int, max
     return normals, valid
 
 
-def _point_to_plane_icp(source, target, init, options: RegistrationOptions, iterations: int = 20):
-    """Point-to-plane ICP moving only along the directions the correspondences see: ``(a_T_b, L)`` or None.
+def _point_to_plane_icp(source, target, source_cov, target_cov, init, options: RegistrationOptions,
+                        iterations: int = 20):
+    """Weighted point-to-plane ICP moving only along the directions the correspondences see: ``(a_T_b, L)``.
 
     ``open3d.pipelines.registration.registration_icp`` solves all six directions every iteration; between two
     profiles of an extruded surface three of them (along the track, and the two tilts out of the scan plane)
     have no information, its solve wanders there (measured: 70 mrad of yaw, 30 cm along the track) and the
     wandering spoils the correspondences of the seen directions.  Here each Gauss-Newton step is the
-    least-squares step restricted to the eigen-directions of ``J^T J`` above ``relative_floor`` (the null
-    directions stay at the INS's relative pose); correspondences from scipy's KD-tree (vectorised queries).
+    weighted least-squares step restricted to the eigen-directions of ``J^T W J`` above ``relative_floor`` (the
+    null directions stay at the INS's relative pose); correspondences from scipy's KD-tree.  Each residual is
+    weighted by its own variance ``n^T (R C_b R^T + C_a) n`` (the stereo covariances of both points: range noise
+    grows with the square of the range, and the far points carry the rotation); the information is divided by
+    the a-posteriori variance factor ``sum (e/s)^2 / (N - r)``.  Returns None when too few points match.
     """
     from scipy.spatial import cKDTree
     P, Q, N = (np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals))
     tree = cKDTree(Q)
     Z = np.array(init, dtype=float)
-    for _ in range(iterations):
+    for it in range(iterations + 1):
         moved = P @ Z[:3, :3].T + Z[:3, 3]
         _, match = tree.query(moved, distance_upper_bound=options.max_correspondence_m)
         ok = match < len(Q)  # scipy marks "none within the bound" with len(Q)
         if ok.sum() < 50:
             return None
         src, q, n = P[ok], Q[match[ok]], N[match[ok]]
+        n_b = n @ Z[:3, :3]  # the normal in the source frame
+        sigma = np.sqrt(np.einsum("ni,nij,nj->n", n_b, source_cov[ok], n_b)
+                        + np.einsum("ni,nij,nj->n", n, target_cov[match[ok]], n))
         e = np.einsum("ij,ij->i", n, moved[ok] - q)
-        L = ms.observable_square_root(ms.point_to_plane_information(src, n, Z, 1.0), options.relative_floor)
-        n_b = n @ Z[:3, :3]
-        G = np.concatenate([np.cross(src, n_b), n_b], axis=1)
-        # step within the seen subspace: xi = V c, min |G V c + e|  (V: the rows of L, normalised)
+        info = ms.point_to_plane_information(src, n, Z, sigma)
+        L = ms.observable_square_root(info, options.relative_floor)
+        if it == iterations:
+            break
+        G = np.concatenate([np.cross(src, n_b), n_b], axis=1) / sigma[:, None]
+        # step within the seen subspace: xi = V c, min |G V c + e / sigma|  (V: the rows of L, normalised)
         V = (L / np.linalg.norm(L, axis=1, keepdims=True)).T
-        c = np.linalg.lstsq(G @ V, -e, rcond=None)[0]
-        xi = V @ c
+        xi = V @ np.linalg.lstsq(G @ V, -e / sigma, rcond=None)[0]
         step = np.eye(4)
         step[:3, :3] = so3.exp(xi[:3])
         step[:3, 3] = xi[3:]  # first order in xi: the steps are micro-radians and millimetres
         Z = Z @ step
         if np.linalg.norm(xi) < 1e-9:
-            break
-    moved = P @ Z[:3, :3].T + Z[:3, 3]
-    e = np.einsum("ij,ij->i", n, moved[ok] - q)
-    sigma = np.sqrt(np.sum(e**2) / (len(e) - len(L)))
-    return Z, ms.observable_square_root(ms.point_to_plane_information(src, n, Z, sigma), options.relative_floor)
+            iterations = it + 1  # one more pass: the correspondences and the information at the final Z
+    variance_factor = np.sum((e / sigma) ** 2) / (len(e) - len(L))
+    return Z, ms.observable_square_root(info / variance_factor, options.relative_floor)
 
 
 def register_frames(data: ScanData, problem: gs.ScanProblem,
@@ -366,9 +376,10 @@ def register_frames(data: ScanData, problem: gs.ScanProblem,
     each frame is a single clock, rigid by construction.  Profile ``b = a + every_clocks`` is registered onto
     profile ``a`` from the INS's relative pose, with the target's in-plane normals
     (:func:`_profile_normals`: the scene taken as extruded across the scan plane, as a tunnel is).  The
-    information (:func:`selfcal.models.scan.point_to_plane_information`) is scaled by the variance of the
-    converged point-to-plane residuals (``sum e^2 / (N - 6)``: the point noise of both profiles and whatever of
-    the surface the model does not fit) and kept on its seen directions only.  The spheres are cut out.
+    information (:func:`selfcal.models.scan.point_to_plane_information`) weighs each residual by the stereo
+    covariances of its two points (:func:`selfcal.models.scan.stereo_point_covariance`) and is divided by the
+    a-posteriori variance factor of the converged residuals (whatever of the surface the model does not fit);
+    it is kept on its seen directions only.  The spheres are cut out.
     """
     R, r = ms.interpolate_poses(data.clock_t_s, data.ins_t_s, data.ins_R, data.ins_r)
     plane_normal_I = data.imu_R_vision[:, 1]  # the scan plane is y_V = 0
@@ -387,14 +398,15 @@ def register_frames(data: ScanData, problem: gs.ScanProblem,
             keep = far & valid
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_I[keep]))
             cloud.normals = o3d.utility.Vector3dVector(normals[keep])
-            clouds.append(cloud)
-        target, source = clouds
+            cov_V = ms.stereo_point_covariance(data.points_V[m][keep], data.cameras, data.pixel_sigma)
+            clouds.append((cloud, data.imu_R_vision @ cov_V @ data.imu_R_vision.T))
+        (target, target_cov), (source, source_cov) = clouds
         if len(target.points) < 50 or len(source.points) < 50:
             continue
         init = np.eye(4)
         init[:3, :3] = R[a].T @ R[b]
         init[:3, 3] = R[a].T @ (r[b] - r[a])
-        fit = _point_to_plane_icp(source, target, init, options)
+        fit = _point_to_plane_icp(source, target, source_cov, target_cov, init, options)
         if fit is None:
             continue
         Z, sqrt_information = fit
