@@ -100,9 +100,10 @@ def short_scan():
 def test_registration_pins_the_transverse_drift_and_stays_honest(short_scan):
     """The vault and the floor are extruded along the track: registered profiles fix the motion across it
     (velocity errors y, z; the vertical accelerometer bias), which the spheres alone see only during their
-    passages; nothing along it.  So: those three posterior sigmas at least halve, every sphere distance's
-    predicted sigma shrinks (information only adds), and each realised distance error stays within 3 of its
-    predicted sigmas (honest covariance)."""
+    passages; nothing along it.  So: those three posterior sigmas at least halve (measured 2.6-4x), every sphere
+    distance's predicted sigma shrinks (information only adds), and each realised distance error stays within 3
+    of its predicted sigmas.  (Over 20 full scans the registered covariance is optimistic, consecutive-distance
+    NEES / dof 2.1: benchmarks/scan_registration.py; this test cannot see that.)"""
     from selfcal.pipelines.scan import sphere_distances
     sim, registrations, spheres, both = short_scan
     assert len(registrations) >= 30  # 200 clocks, a pair every 10 clocks (spheres cut out)
