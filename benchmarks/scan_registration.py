@@ -140,7 +140,8 @@ def main():
     seeds = args.seeds or (2 if args.quick else 20)
     runs = []
     with Pool(args.workers) as pool:
-        for r in pool.imap_unordered(one_seed, [(scenario, s) for s in range(args.first_seed, args.first_seed + seeds)]):
+        tasks = [(scenario, s) for s in range(args.first_seed, args.first_seed + seeds)]
+        for r in pool.imap_unordered(one_seed, tasks):
             runs.append(r)
             if "skipped" in r:
                 print(f"seed {r['seed']}: skipped ({r['skipped']})", flush=True)
