@@ -11,6 +11,8 @@ Factors:
   (clock, sphere), batched over the clock's points on that sphere (the patent's objective, step 204).
   :func:`inertial_tie_factor` — ``e = Log((T(theta) Exp(dt xi))^-1 X)``: the clock's pose against the INS pose
   corrected by the error model (step 205), ``xi`` the body twist for a clock offset.
+  :func:`registration_theta_factor` — ``e = L Log(Z^-1 T_a(theta)^-1 T_b(theta))``: two frames registered
+  against each other (ICP) give their relative pose ``Z``; ``L`` the square root of its information.
 """
 from __future__ import annotations
 
@@ -174,5 +176,55 @@ def sphere_theta_factor(sigmas_m, vision_p, imu_R_vision, imu_t_vision, radius_m
             for i, Jb in enumerate(blocks):
                 H[i] = Jb
         return e
+
+    return gtsam.CustomFactor(noise, keys, error)
+
+
+def registration_theta_factor(sqrt_information, jitter_covariance, measured_a_T_b, ins_a, ins_b, Phi_a, Phi_b,
+                              theta_blocks) -> gtsam.CustomFactor:
+    """Two frames registered against each other: their relative pose through the corrected INS poses.
+
+    ``e = L Log(Z^-1 T_a(theta)^-1 T_b(theta))`` with ``T(theta)`` :func:`selfcal.models.scan.corrected_pose` at
+    the anchor clocks a and b, ``Z`` the registered relative pose and ``L`` (r, 6) the square root of its
+    information on the directions the registration sees (:func:`selfcal.models.scan.observable_square_root`).
+    The residual's covariance is ``I + L C_j L^T``: the registration's own (unit, after ``L``) plus the INS
+    output jitter of both anchors (``C_j``, :func:`selfcal.models.scan.relative_jitter_covariance`), which the
+    error terms do not model.
+
+    Parameters
+    ----------
+    sqrt_information : (r, 6); jitter_covariance : (6, 6); measured_a_T_b : (4, 4).
+    ins_a, ins_b : ``(R, r)`` INS poses at the anchor clocks; Phi_a, Phi_b : (9, 21) sensitivities there.
+    theta_blocks : as for :func:`inertial_tie_factor`.
+    """
+    L = np.asarray(sqrt_information, float)
+    noise = gtsam.noiseModel.Gaussian.Covariance(np.eye(len(L)) + L @ np.asarray(jitter_covariance, float) @ L.T)
+    Z = gtsam.Pose3(np.asarray(measured_a_T_b, float))
+    cols = np.concatenate([c for _, c, _ in theta_blocks])
+    scale = np.concatenate([np.broadcast_to(s, len(c)) for _, c, s in theta_blocks])
+    Phis = [np.asarray(P, float)[:, cols] * scale[None, :] for P in (Phi_a, Phi_b)]
+    widths = [len(c) for _, c, _ in theta_blocks]
+    keys = [k for k, _, _ in theta_blocks]
+
+    def error(this, values, H):
+        eta = np.concatenate([values.atVector(k) for k in keys])
+        poses, jacobians = [], []
+        for (R_ins, r_ins), Phi in zip((ins_a, ins_b), Phis):
+            R, r, J = ms.corrected_pose(R_ins, r_ins, Phi, eta, with_jacobian=True)
+            poses.append(gtsam.Pose3(gtsam.Rot3(R), r))
+            jacobians.append(J)
+        H_a, H_b = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+        a_T_b = poses[0].between(poses[1], H_a, H_b)
+        H_z = np.zeros((6, 6), order="F")
+        D = Z.between(a_T_b, np.zeros((6, 6), order="F"), H_z)
+        H_log = np.zeros((6, 6), order="F")
+        e = gtsam.Pose3.Logmap(D, H_log)
+        if H is not None:
+            dtheta = L @ H_log @ H_z @ (H_a @ jacobians[0] + H_b @ jacobians[1])
+            start = 0
+            for i, w in enumerate(widths):
+                H[i] = dtheta[:, start:start + w]
+                start += w
+        return L @ e
 
     return gtsam.CustomFactor(noise, keys, error)

@@ -72,9 +72,21 @@ class ScanProblem:
     prior_sigmas: np.ndarray  # (15,)
     jitter_sigmas: np.ndarray  # (6,) rad x3, m x3
     prior_mean: np.ndarray | None = None  # (15,) the prior's mean of the terms: -theta already removed from the INS
+    #: frames registered against each other (ICP): used by the batch graphs when ``ScanModel.registration``
+    registrations: list = field(default_factory=list)
 
     def b_clocks(self) -> np.ndarray:
         return np.unique([o.clock for o in self.observations])
+
+
+@dataclass
+class FrameRegistration:
+    """Two frames (points of consecutive clocks, each in its anchor clock's IMU frame) registered by ICP."""
+
+    clock_a: int  # anchor clock of the target frame
+    clock_b: int  # anchor clock of the source frame
+    a_T_b: np.ndarray  # (4, 4) registered relative pose (IMU at clock b into IMU at clock a)
+    sqrt_information: np.ndarray  # (r, 6) on the directions the registration sees (tangent [omega, v])
 
 
 @dataclass(frozen=True)
@@ -82,6 +94,8 @@ class ScanModel:
     """Which extensions of the base model (15 error terms) are estimated."""
 
     extensions: tuple[str, ...] = ()
+    #: add :func:`selfcal.factors.scan.registration_theta_factor` for ``ScanProblem.registrations`` (batch only)
+    registration: bool = False
 
     def has(self, name: str) -> bool:
         return name in self.extensions
@@ -170,11 +184,30 @@ def build(problem: ScanProblem, model: ScanModel = ScanModel()):
     graph, values = prior_factors(model, problem)
     g, v = factors_for_clocks(problem, model, problem.b_clocks(), problem.observations)
     graph.push_back(g)
+    graph.push_back(registration_factors(problem, model))
     values.insert(v)
     for j, c in enumerate(problem.centers0):
         if any(o.sphere == j for o in problem.observations):
             values.insert(O_KEY(j), np.asarray(c, dtype=float))
     return graph, values
+
+
+def registration_factors(problem: ScanProblem, model: ScanModel) -> gtsam.NonlinearFactorGraph:
+    """One :func:`selfcal.factors.scan.registration_theta_factor` per registered frame pair (none unless
+    ``model.registration``); the anchors are taken at their stamps (no clock-offset term)."""
+    graph = gtsam.NonlinearFactorGraph()
+    if not (model.registration and problem.registrations):
+        return graph
+    clocks = np.unique([[g.clock_a, g.clock_b] for g in problem.registrations])
+    R, r, Phi, _ = clock_inputs(problem, clocks)
+    row = {m: i for i, m in enumerate(clocks)}
+    blocks = _theta_blocks(problem, model)
+    for g in problem.registrations:
+        a, b = row[g.clock_a], row[g.clock_b]
+        graph.add(fs.registration_theta_factor(g.sqrt_information,
+                                               ms.relative_jitter_covariance(g.a_T_b, problem.jitter_sigmas),
+                                               g.a_T_b, (R[a], r[a]), (R[b], r[b]), Phi[a], Phi[b], blocks))
+    return graph
 
 
 def build_collapsed(problem: ScanProblem, model: ScanModel = ScanModel(), term_columns=None):
@@ -203,6 +236,7 @@ def build_collapsed(problem: ScanProblem, model: ScanModel = ScanModel(), term_c
             Phi[i], O_KEY(obs.sphere), blocks, EXT_KEYS["time_offset"] if model.has("time_offset") else None,
             twist[i], EXT_KEYS["extrinsic_rotation"] if model.has("extrinsic_rotation") else None,
             EXT_KEYS["sphere_radius"] if model.has("sphere_radius") else None, term_columns.get(n_obs, ())))
+    graph.push_back(registration_factors(problem, model))
     for j in sorted({o.sphere for o in problem.observations}):
         values.insert(O_KEY(j), np.asarray(problem.centers0[j], dtype=float))
     return graph, values

@@ -478,3 +478,55 @@ def distance_sigmas(centers_W, centers_cov, pairs) -> tuple[np.ndarray, np.ndarr
     g = diff / d[:, None]
     block = C[i, :, i, :] + C[j, :, j, :] - C[i, :, j, :] - C[j, :, i, :]
     return d, np.sqrt(np.einsum("pi,pij,pj->p", g, block, g))
+
+
+# --------------------------------------------------------------------------------------- frame registration
+
+def point_to_plane_information(source_p, target_n, target_a_T_source_b, residual_sigma_m) -> np.ndarray:
+    """Information (6, 6) of a relative pose from point-to-plane correspondences (tangent ``[omega, v]``).
+
+    The residual of a correspondence is ``e_i = n_i . (Z Exp(xi) p_i - q_i)`` with ``Z = (R, t)`` the relative
+    pose ``a_T_b`` (source frame b into target frame a), ``p_i`` a source point, ``q_i``, ``n_i`` its target
+    point and unit normal; ``de_i/dxi = [(p_i x R^T n_i)^T, (R^T n_i)^T]``.  With independent residuals of
+    1-sigma ``s_i`` (the point-to-plane noise of both points) the Gauss-Newton information is
+    ``sum g_i g_i^T / s_i^2``.
+
+    Unlike ``open3d.pipelines.registration.get_information_matrix_from_point_clouds`` (point-to-point: three
+    rows per correspondence, unit weight) this keeps only the normal component: on a surface extruded along the
+    track (a tunnel) the tangential nearest-neighbour offsets carry no information about the motion along it,
+    and the point-to-point matrix would claim they do.
+
+    Parameters
+    ----------
+    source_p : (N, 3) source points (frame b) that found a correspondence, m.
+    target_n : (N, 3) unit normals of their target points (frame a).
+    target_a_T_source_b : (4, 4) the registered relative pose.
+    residual_sigma_m : 1-sigma of the point-to-plane residuals, m: one for all, or (N,).
+    """
+    Z = np.asarray(target_a_T_source_b, float)
+    n_b = np.asarray(target_n, float) @ Z[:3, :3]  # rows R^T n_i
+    g = np.concatenate([np.cross(np.asarray(source_p, float), n_b), n_b], axis=1)
+    g = g / np.reshape(np.asarray(residual_sigma_m, float), (-1, 1))
+    return g.T @ g
+
+
+def observable_square_root(information, relative_floor: float = 1e-6) -> np.ndarray:
+    """``L`` (r, 6) with ``L^T L`` the information restricted to its eigen-directions above
+    ``relative_floor`` times the largest: the directions the registration does not see (along an extruded
+    surface) are left out instead of being given a made-up small information."""
+    w, V = np.linalg.eigh(0.5 * (information + np.asarray(information).T))
+    keep = w > relative_floor * w.max()
+    return (V[:, keep] * np.sqrt(w[keep])).T
+
+
+def relative_jitter_covariance(a_T_b, jitter_sigmas) -> np.ndarray:
+    """Covariance (6, 6) of ``Log(a_T_b^-1 (a Exp(j_a))^-1 b Exp(j_b))`` from the white INS output jitter of
+    both ends (``j ~ N(0, diag(jitter^2))``, right perturbation): ``Ad(b_T_a) D Ad(b_T_a)^T + D``."""
+    Z = np.asarray(a_T_b, float)
+    R, t = Z[:3, :3].T, -Z[:3, :3].T @ Z[:3, 3]  # b_T_a
+    Ad = np.zeros((6, 6))
+    Ad[0:3, 0:3] = R
+    Ad[3:6, 3:6] = R
+    Ad[3:6, 0:3] = so3.hat(t) @ R
+    D = np.diag(np.asarray(jitter_sigmas, float) ** 2)
+    return Ad @ D @ Ad.T + D

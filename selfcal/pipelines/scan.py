@@ -23,6 +23,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from selfcal.core.progress import quiet
+from selfcal.core import so3
 from selfcal.core.sanity import imu_problems
 from selfcal.core.solve import DegenerateDataError
 from selfcal.graphs import scan as gs
@@ -283,6 +284,137 @@ def _points_near(points: np.ndarray, seeds: np.ndarray, radius_m: float, min_bou
     return near, o3d.geometry.KDTreeFlann(cloud)
 
 
+@dataclass(frozen=True)
+class RegistrationOptions:
+    every_clocks: int = 3  # profile pairs (m, m + every_clocks), chained: 3 clocks = 3 cm of track at 0.5 m/s.
+    # The in-plane normals take the surface as extruded across the scan plane; the vehicle's yaw and pitch tilt
+    # the plane by milliradians against the tunnel's axis, an error of (gap x tilt) in every pair (measured
+    # registration NEES / dof at the true poses, 10 m scans: 1.5 with 10 clocks, 2.0 with 0.3 deg of pitch;
+    # 1.1-1.2 with 3 clocks)
+    max_correspondence_m: float = 0.3  # profiles of a push-broom scanner do not overlap: the next profile is
+    # every_clocks * speed / clock_hz away along the track, and every neighbour is at least that far
+    tangent_half_window: int = 3  # points either side for a profile's tangent (its in-plane normal)
+    max_tangent_gap_m: float = 0.05  # neighbours further apart than this along the profile: an edge, no normal
+    sphere_clearance_radii: float = 2.5  # points this close to a detected sphere (in radii) are left out
+    relative_floor: float = 1e-2  # information eigen-directions below this fraction of the largest: unseen
+
+
+def _profile_normals(p_I: np.ndarray, plane_normal_I: np.ndarray, half: int, max_gap_m: float):
+    """In-plane unit normals of one profile (points in pixel order): the surface taken as extruded across the
+    scan plane (a tunnel's vault and floor), the normal is perpendicular to the profile's tangent and to the
+    plane's normal.  Returns (normals (N, 3), valid (N,)): no normal across a gap (an edge, an occlusion)."""
+    n = len(p_I)
+    valid = np.zeros(n, dtype=bool)
+    normals = np.zeros((n, 3))
+    if n < 2 * half + 1:
+        return normals, valid
+    ahead, behind = p_I[2 * half:], p_I[:-2 * half]
+    step = np.linalg.norm(np.diff(p_I, axis=0), axis=1)
+    gaps = np.convolve(step > max_gap_m, np.ones(2 * half, dtype=int), mode="valid") > 0
+    tangent = ahead - behind
+    normal = np.cross(tangent, plane_normal_I)
+    length = np.linalg.norm(normal, axis=1)
+    ok = ~gaps & (length > 0)
+    normals[half:n - half][ok] = normal[ok] / length[ok, None]
+    valid[half:n - half] = ok
+    return normals, valid
+
+
+def _point_to_plane_icp(source, target, source_cov, target_cov, init, options: RegistrationOptions,
+                        iterations: int = 20):
+    """Weighted point-to-plane ICP moving only along the directions the correspondences see: ``(a_T_b, L)``.
+
+    ``open3d.pipelines.registration.registration_icp`` solves all six directions every iteration; between two
+    profiles of an extruded surface three of them (along the track, and the two tilts out of the scan plane)
+    have no information, its solve wanders there (measured: 70 mrad of yaw, 30 cm along the track) and the
+    wandering spoils the correspondences of the seen directions.  Here each Gauss-Newton step is the
+    weighted least-squares step restricted to the eigen-directions of ``J^T W J`` above ``relative_floor`` (the
+    null directions stay at the INS's relative pose); correspondences from scipy's KD-tree.  Each residual is
+    weighted by its own variance ``n^T (R C_b R^T + C_a) n`` (the stereo covariances of both points: range noise
+    grows with the square of the range, and the far points carry the rotation); the information is divided by
+    the a-posteriori variance factor ``sum (e/s)^2 / (N - r)``.  Returns None when too few points match.
+    """
+    from scipy.spatial import cKDTree
+    P, Q, N = (np.asarray(source.points), np.asarray(target.points), np.asarray(target.normals))
+    tree = cKDTree(Q)
+    Z = np.array(init, dtype=float)
+    for it in range(iterations + 1):
+        moved = P @ Z[:3, :3].T + Z[:3, 3]
+        _, match = tree.query(moved, distance_upper_bound=options.max_correspondence_m)
+        ok = match < len(Q)  # scipy marks "none within the bound" with len(Q)
+        if ok.sum() < 50:
+            return None
+        src, q, n = P[ok], Q[match[ok]], N[match[ok]]
+        n_b = n @ Z[:3, :3]  # the normal in the source frame
+        sigma = np.sqrt(np.einsum("ni,nij,nj->n", n_b, source_cov[ok], n_b)
+                        + np.einsum("ni,nij,nj->n", n, target_cov[match[ok]], n))
+        e = np.einsum("ij,ij->i", n, moved[ok] - q)
+        info = ms.point_to_plane_information(src, n, Z, sigma)
+        L = ms.observable_square_root(info, options.relative_floor)
+        if it == iterations:
+            break
+        G = np.concatenate([np.cross(src, n_b), n_b], axis=1) / sigma[:, None]
+        # step within the seen subspace: xi = V c, min |G V c + e / sigma|  (V: the rows of L, normalised)
+        V = (L / np.linalg.norm(L, axis=1, keepdims=True)).T
+        xi = V @ np.linalg.lstsq(G @ V, -e / sigma, rcond=None)[0]
+        step = np.eye(4)
+        step[:3, :3] = so3.exp(xi[:3])
+        step[:3, 3] = xi[3:]  # first order in xi: the steps are micro-radians and millimetres
+        Z = Z @ step
+        if np.linalg.norm(xi) < 1e-9:
+            iterations = it + 1  # one more pass: the correspondences and the information at the final Z
+    variance_factor = np.sum((e / sigma) ** 2) / (len(e) - len(L))
+    return Z, ms.observable_square_root(info / variance_factor, options.relative_floor)
+
+
+def register_frames(data: ScanData, problem: gs.ScanProblem,
+                    options: RegistrationOptions = RegistrationOptions()) -> list:
+    """Profiles of the scan registered pairwise by point-to-plane ICP (open3d): ``FrameRegistration`` list.
+
+    A line scanner's frame is one profile; a frame placed by the INS over several clocks would carry the INS's
+    own velocity error into the measurement (measured: registration NEES growing with the drift to ~10^3), so
+    each frame is a single clock, rigid by construction.  Profile ``b = a + every_clocks`` is registered onto
+    profile ``a`` from the INS's relative pose, with the target's in-plane normals
+    (:func:`_profile_normals`: the scene taken as extruded across the scan plane, as a tunnel is).  The
+    information (:func:`selfcal.models.scan.point_to_plane_information`) weighs each residual by the stereo
+    covariances of its two points (:func:`selfcal.models.scan.stereo_point_covariance`) and is divided by the
+    a-posteriori variance factor of the converged residuals (whatever of the surface the model does not fit);
+    it is kept on its seen directions only.  The spheres are cut out.
+    """
+    R, r = ms.interpolate_poses(data.clock_t_s, data.ins_t_s, data.ins_R, data.ins_r)
+    plane_normal_I = data.imu_R_vision[:, 1]  # the scan plane is y_V = 0
+    out = []
+    for a in range(0, len(data.clock_t_s) - options.every_clocks, options.every_clocks):
+        b = a + options.every_clocks
+        clouds = []
+        for m in (a, b):
+            p_I = data.points_V[m] @ data.imu_R_vision.T + data.imu_t_vision
+            p_W = p_I @ R[m].T + r[m]
+            far = np.ones(len(p_I), dtype=bool)
+            for c in problem.centers0:
+                far &= np.einsum("ij,ij->i", p_W - c, p_W - c) > (options.sphere_clearance_radii * data.radius_m) ** 2
+            normals, valid = _profile_normals(p_I, plane_normal_I, options.tangent_half_window,
+                                              options.max_tangent_gap_m)
+            keep = far & valid
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p_I[keep]))
+            cloud.normals = o3d.utility.Vector3dVector(normals[keep])
+            cov_V = ms.stereo_point_covariance(data.points_V[m][keep], data.cameras, data.pixel_sigma)
+            clouds.append((cloud, data.imu_R_vision @ cov_V @ data.imu_R_vision.T))
+        (target, target_cov), (source, source_cov) = clouds
+        if len(target.points) < 50 or len(source.points) < 50:
+            continue
+        init = np.eye(4)
+        init[:3, :3] = R[a].T @ R[b]
+        init[:3, 3] = R[a].T @ (r[b] - r[a])
+        fit = _point_to_plane_icp(source, target, source_cov, target_cov, init, options)
+        if fit is None:
+            continue
+        Z, sqrt_information = fit
+        out.append(gs.FrameRegistration(a, b, Z, sqrt_information))
+    log.info("registration: %d profile pairs", len(out))
+    return out
+
+
 def scan_problem(data: ScanData, detection: DetectionOptions = DetectionOptions()) -> gs.ScanProblem:
     """Set B detected in the inertial-only scan, with the INS error sensitivity: the graph's input."""
     sens = ms.error_sensitivity(data.ins_t_s, data.ins_R, data.ins_accel, data.ins_gyro)
@@ -395,6 +527,10 @@ def smooth_scan(recording: Recording, online: bool = False, model: gs.ScanModel 
     progress("sphere detection (set B)")
     problem = scan_problem(data)
     lap("sphere detection (set B)")
+    if model.registration and not online:  # the iSAM2 path takes the spheres only
+        progress("frame registration")
+        problem = replace(problem, registrations=register_frames(data, problem))
+        lap("frame registration")
     progress("factor graph" + (" (iSAM2)" if online else ""))
     problem, solution, theta = solve_scan(data, problem, model, online, iterations)
     lap("factor graph")
