@@ -11,6 +11,15 @@ upper-triangular M, gyro bias, M and (optionally) g-sensitivity A.  Factors:
 
 The specific force during a move (needed only for the small A f term) comes from a first, accelerometer-only
 solve; this keeps the motion factor independent of the accelerometer blocks at a cost of second order in A.
+
+Gaps in a move.  A stamp step longer than :data:`GAP_PERIODS` nominal sample periods (sensor.yaml ``rate_hz``) is
+either samples lost (the rotation over the gap is unmeasured: holding the last rate over it is a guess) or a clock
+jump (the rotation over it is zero); with one IMU nobody can tell which.  Either way the rotation over the gap's
+excess ``dt - 1/rate_hz`` is unknown by up to ``|w| (dt - 1/rate_hz)``, ``|w|`` the bias-removed rate either side,
+so that is added in quadrature to the move's 1-sigma angle (:func:`gap_angle_sigma_rad`).  Still, it is
+harmless (``|w|`` is noise); turning, the move's rotation constraint weakens to what the data do know, and a
+note names the move.  The real recordings' clocks step at most 1.04 nominal periods (Xsens MTi: 9.0-10.4 ms at
+100 Hz; the MPU-6050 and Xsens DOT recordings are uniform), so 3 periods is a gap and never jitter.
 """
 from __future__ import annotations
 
@@ -66,6 +75,7 @@ class IntrinsicsProblem:
     gravity_m_s2: float
     channel_units: dict = field(default_factory=dict)
     channel_refs: dict = field(default_factory=dict)  # reference value of each channel (mean over poses)
+    notes: list[str] = field(default_factory=list)  # moves whose gaps weaken their rotation constraint
 
     def pose_deviation(self, k: int) -> dict:
         return {name: self.poses[k].channels[name] - ref for name, ref in self.channel_refs.items()}
@@ -103,6 +113,24 @@ class IntrinsicsEstimate:
         return np.sqrt(np.diag(self.covariance[block]))
 
 
+GAP_PERIODS = 3.0  # a stamp step longer than this many nominal sample periods is a gap (module docstring)
+
+
+def gap_angle_sigma_rad(gyro_rad_s: np.ndarray, dt_s: np.ndarray, period_s: float) -> float:
+    """1-sigma (rad) of the rotation a move's gaps leave unknown: the root sum square over every step ``dt_s[i]``
+    longer than ``GAP_PERIODS * period_s`` of ``max(|w_i|, |w_(i+1)|) (dt_s[i] - period_s)``.
+
+    ``gyro_rad_s`` (n, 3): bias-removed rates; sample i is held for ``dt_s[i]`` (the last sample's rate stands in
+    for the one after it).
+    """
+    gaps = np.flatnonzero(dt_s > GAP_PERIODS * period_s)
+    if not gaps.size:
+        return 0.0
+    speed = np.linalg.norm(gyro_rad_s, axis=1)
+    after = np.minimum(gaps + 1, len(speed) - 1)
+    return float(np.sqrt(np.sum((np.maximum(speed[gaps], speed[after]) * (dt_s[gaps] - period_s)) ** 2)))
+
+
 MIN_POSES_FULL_ACCEL = 9  # bias (3) + upper-triangular M (6); each pose adds one net equation (|f| = g)
 
 
@@ -124,16 +152,22 @@ def problem_from_imu(data: ImuData, gravity_m_s2: float, **detector_options) -> 
                         float(np.mean(t_s[p.start:p.end])),
                         {name: float(np.mean(v[p.start:p.end])) for name, v in channels.items()}) for p in stats]
     dt_all = np.diff(t_s, append=t_s[-1] + np.median(np.diff(t_s)))
-    moves = []
-    for (_, end), (start, _) in zip(intervals[:-1], intervals[1:]):
+    gyro_bias = np.median([p.gyro_mean for p in stats], axis=0)  # to tell turning from still at a gap
+    moves, notes = [], []
+    for k, ((_, end), (start, _)) in enumerate(zip(intervals[:-1], intervals[1:])):
         # the last static sample is held until the first moving one: include it, so the whole move integrates
         idx = np.arange(end - 1, start)
         dt = dt_all[idx]
-        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt,
-                          float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2))), t_s[idx],
-                          {name: v[idx] for name, v in channels.items()}))
+        noise_sigma = float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2)))
+        gap_sigma = gap_angle_sigma_rad(data.gyro_rad_s[idx] - gyro_bias, dt, 1.0 / data.rate_hz)
+        if gap_sigma > noise_sigma:  # turning across the gap: say so (still, the term is below the noise)
+            notes.append(f"{data.name}: move {k} ({t_s[idx[0]] - t_s[0]:.1f}-{t_s[idx[-1]] - t_s[0]:.1f} s) has a "
+                         f"{float(dt.max()):.3g} s gap while turning: its rotation is known to {gap_sigma:.2g} rad "
+                         f"only (gyro noise alone: {noise_sigma:.2g} rad)")
+        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt, float(np.hypot(noise_sigma, gap_sigma)),
+                          t_s[idx], {name: v[idx] for name, v in channels.items()}))
     refs = {name: float(np.mean([p.channels[name] for p in poses])) for name in channels}
-    return IntrinsicsProblem(poses, moves, gravity_m_s2, dict(data.channel_units), refs)
+    return IntrinsicsProblem(poses, moves, gravity_m_s2, dict(data.channel_units), refs, notes)
 
 
 def check_pose_geometry(poses: list[StaticPose], spec: IntrinsicsSpec) -> None:
