@@ -117,6 +117,45 @@ def test_perturbed_normalised_errors_are_chi_square_consistent():
     assert np.abs(z_all).max() < 5, np.abs(z_all).max()
 
 
+# --- (b2) a gap in a move ------------------------------------------------------------------------------------------
+
+def test_a_clock_jump_in_a_move_weakens_its_rotation_only_while_turning():
+    """A 0.1 s stamp jump (10 periods: lost samples or a clock jump, nobody can tell) leaves the rotation over it
+    unknown by |w| x 0.1 s.  Still (0.2 s before the first move's true start): harmless, not named.  Turning
+    (mid-move 1, |w| ~ 1.2 rad/s): that move's 1-sigma becomes hypot(noise, |w| 0.1 s), named in a note the audit
+    adapter carries too; every other move is untouched."""
+    from dataclasses import replace
+    from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
+    from selfcal.graphs.imu import problem_from_imu
+    scenario = imu_scenario(seed=3, noise=WHITE)
+    data = scenario.perturbed_measurements(7).imu("imu0")
+    (_, move0_start_s), (_, move1_start_s), (move1_end_s, _) = scenario.trajectory.static_intervals_s[:3]
+    still_s, jump_ns = move0_start_s - 0.2, 100_000_000
+    turning_s = (move1_start_s + move1_end_s) / 2  # the trajectory's peak rate
+    t_ns = data.t_ns.copy()
+    for at_s in (still_s, turning_s):
+        t_ns[data.t_s > at_s] += jump_ns
+    clean, jumped = problem_from_imu(data, STANDARD_GRAVITY_M_S2), problem_from_imu(replace(data, t_ns=t_ns),
+                                                                                     STANDARD_GRAVITY_M_S2)
+    sigma_clean = np.array([m.angle_sigma_rad for m in clean.moves])
+    sigma_jumped = np.array([m.angle_sigma_rad for m in jumped.moves])
+    assert len(sigma_jumped) == len(sigma_clean) == len(scenario.trajectory.static_intervals_s) - 1
+    np.testing.assert_allclose(sigma_jumped[2:], sigma_clean[2:], rtol=1e-12)  # the shifted stamps' round-off
+    # still: the noise of the sample held 0.11 s instead of 0.01 s (sum dt^2 over ~250 samples: x1.22) and a rate
+    # of noise only (mean of 10 samples); 2x bounds both, against x450 when turning
+    assert sigma_jumped[0] < 2 * sigma_clean[0], (sigma_jumped[0], sigma_clean[0])
+    # turning: |w| from the trajectory's truth; the raw rate differs from it by the gyro scale (random_intrinsics:
+    # at most 3 %) and by the 10-sample mean's noise and curvature (well under 1 %)
+    rate = float(np.linalg.norm(scenario.trajectory.evaluate(np.array([turning_s])).w_S))
+    assert rate > 1.0  # the premise: turning
+    expected = np.hypot(sigma_clean[1], rate * jump_ns * 1e-9)
+    assert abs(sigma_jumped[1] / expected - 1) < 0.04, (sigma_jumped[1], expected)
+    assert len(jumped.notes) == 1 and jumped.notes[0].startswith("imu0: move 1 ") and \
+        "0.11 s gap while turning" in jumped.notes[0], jumped.notes
+    assert not clean.notes
+    assert ImuIntrinsicsAudit(replace(data, t_ns=t_ns), STANDARD_GRAVITY_M_S2).notes == jumped.notes
+
+
 # --- (c) the pair pipeline on hand-held motion ----------------------------------------------------------------------
 
 PAIR_SEEDS = range(5)

@@ -11,6 +11,17 @@ upper-triangular M, gyro bias, M and (optionally) g-sensitivity A.  Factors:
 
 The specific force during a move (needed only for the small A f term) comes from a first, accelerometer-only
 solve; this keeps the motion factor independent of the accelerometer blocks at a cost of second order in A.
+
+Gaps in a move.  A stamp step longer than :data:`GAP_PERIODS` nominal sample periods (sensor.yaml ``rate_hz``) is
+either samples lost (the rotation over the gap is unmeasured: holding the last rate over it is a guess) or a clock
+jump (the rotation over it is zero); with one IMU nobody can tell which.  Either way the rotation over the gap's
+excess ``dt - 1/rate_hz`` is unknown by up to ``|w| (dt - 1/rate_hz)``, ``|w|`` the bias-removed rate around it,
+so that is added in quadrature to the move's 1-sigma angle (:func:`gap_angle_sigma_rad`).  Still, it is
+harmless (``|w|`` is noise); turning, the move's rotation constraint weakens to what the data do know, and a
+note names the move.  The real recordings' clocks step at most 1.04 nominal periods (Xsens MTi: 9.0-10.4 ms at
+100 Hz; the MPU-6050 and Xsens DOT recordings are uniform), so 3 periods is a gap and never jitter.  A bursty USB
+logger (the sunsided MPU-6050 logs: stalls of ~6 periods, then a burst) would have its turning moves weakened
+(honestly: its stamps do not say when the samples were taken); none of its logs is a multi-position one.
 """
 from __future__ import annotations
 
@@ -66,6 +77,7 @@ class IntrinsicsProblem:
     gravity_m_s2: float
     channel_units: dict = field(default_factory=dict)
     channel_refs: dict = field(default_factory=dict)  # reference value of each channel (mean over poses)
+    notes: list[str] = field(default_factory=list)  # moves whose gaps weaken their rotation constraint
 
     def pose_deviation(self, k: int) -> dict:
         return {name: self.poses[k].channels[name] - ref for name, ref in self.channel_refs.items()}
@@ -103,6 +115,24 @@ class IntrinsicsEstimate:
         return np.sqrt(np.diag(self.covariance[block]))
 
 
+GAP_PERIODS = 3.0  # a stamp step longer than this many nominal sample periods is a gap (module docstring)
+GAP_RATE_SAMPLES = 5  # the rate at a gap: the mean of this many samples either side (white noise / sqrt(10))
+
+
+def gap_angle_sigma_rad(gyro_rad_s: np.ndarray, dt_s: np.ndarray, period_s: float) -> float:
+    """1-sigma (rad) of the rotation a move's gaps leave unknown: the root sum square over every step ``dt_s[i]``
+    longer than ``GAP_PERIODS * period_s`` of ``|w| (dt_s[i] - period_s)``, ``|w|`` the norm of the mean rate
+    over the :data:`GAP_RATE_SAMPLES` samples either side of the gap (a single sample's noise would read as
+    turning while the unit is still).
+
+    ``gyro_rad_s`` (n, 3): bias-removed rates; sample i is held for ``dt_s[i]``.
+    """
+    gaps = np.flatnonzero(dt_s > GAP_PERIODS * period_s)
+    speed = np.array([np.linalg.norm(np.mean(gyro_rad_s[max(0, i + 1 - GAP_RATE_SAMPLES):i + 1 + GAP_RATE_SAMPLES],
+                                             axis=0)) for i in gaps])
+    return float(np.sqrt(np.sum((speed * (dt_s[gaps] - period_s)) ** 2)))
+
+
 MIN_POSES_FULL_ACCEL = 9  # bias (3) + upper-triangular M (6); each pose adds one net equation (|f| = g)
 
 
@@ -124,16 +154,25 @@ def problem_from_imu(data: ImuData, gravity_m_s2: float, **detector_options) -> 
                         float(np.mean(t_s[p.start:p.end])),
                         {name: float(np.mean(v[p.start:p.end])) for name, v in channels.items()}) for p in stats]
     dt_all = np.diff(t_s, append=t_s[-1] + np.median(np.diff(t_s)))
-    moves = []
-    for (_, end), (start, _) in zip(intervals[:-1], intervals[1:]):
+    moves, notes = [], []
+    for k, ((_, end), (start, _)) in enumerate(zip(intervals[:-1], intervals[1:])):
         # the last static sample is held until the first moving one: include it, so the whole move integrates
         idx = np.arange(end - 1, start)
         dt = dt_all[idx]
-        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt,
-                          float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2))), t_s[idx],
-                          {name: v[idx] for name, v in channels.items()}))
+        noise_sigma = float(np.sqrt(np.mean(gyro_std**2) * np.sum(dt**2)))
+        # rest output of the nearer pose (bias + its g-sensitivity) removed, so that still reads as noise only:
+        # the mean of 2 GAP_RATE_SAMPLES noise samples, |w| ~ 0.55 sigma_w, against the held sample's own
+        # sigma_w dt in noise_sigma: a gap while still stays under the noise and is not named
+        rest = np.where((np.arange(len(idx)) < len(idx) / 2)[:, None], stats[k].gyro_mean, stats[k + 1].gyro_mean)
+        gap_sigma = gap_angle_sigma_rad(data.gyro_rad_s[idx] - rest, dt, 1.0 / data.rate_hz)
+        if gap_sigma > noise_sigma:  # turning across the gap: say so
+            notes.append(f"{data.name}: move {k} ({t_s[idx[0]] - t_s[0]:.1f}-{t_s[idx[-1]] - t_s[0]:.1f} s) has a "
+                         f"{float(dt.max()):.3g} s gap while turning: its rotation is known to {gap_sigma:.2g} rad "
+                         f"only (gyro noise alone: {noise_sigma:.2g} rad)")
+        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt, float(np.hypot(noise_sigma, gap_sigma)),
+                          t_s[idx], {name: v[idx] for name, v in channels.items()}))
     refs = {name: float(np.mean([p.channels[name] for p in poses])) for name in channels}
-    return IntrinsicsProblem(poses, moves, gravity_m_s2, dict(data.channel_units), refs)
+    return IntrinsicsProblem(poses, moves, gravity_m_s2, dict(data.channel_units), refs, notes)
 
 
 def check_pose_geometry(poses: list[StaticPose], spec: IntrinsicsSpec) -> None:

@@ -83,6 +83,8 @@ def calibrate_imu(recording: Recording, sensor: str, spec: gi.IntrinsicsSpec = g
                   gravity_m_s2: float | None = None) -> ImuCalibration:
     data = recording.imu(sensor)
     problem = gi.problem_from_imu(data, gravity_of(data, gravity_m_s2))
+    for note in problem.notes:
+        log.warning(note)
     estimate = gi.solve_intrinsics(problem.poses, problem.moves, problem.gravity_m_s2, spec)
     return ImuCalibration(sensor, estimate, len(problem.poses), problem.gravity_m_s2, data.meta.get("raw_counts"))
 

@@ -82,6 +82,7 @@ class ImuIntrinsicsAudit:
         timed = replace(data, channels={**data.channels, TIME_CHANNEL: data.t_s},
                         channel_units={**data.channel_units, TIME_CHANNEL: "s"})
         self.problem = gi.problem_from_imu(timed, gravity_m_s2)
+        self.notes = list(self.problem.notes)  # moves weakened by a gap while turning
         self._derived: dict[library.Term, tuple[str, ...]] = {}  # a term's derived channels in the problem
         self._drivers = self._driver_values()
         self.sensor = data.name
