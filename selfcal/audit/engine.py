@@ -10,7 +10,8 @@ catalog of candidate effects.  The engine is the same for every system:
 2. Candidates significant at ``alpha / m`` (Bonferroni over the m candidates still open) are refitted in
    order of evidence; one is accepted only if it lowers the BIC AND the held-out residual (cross-validated
    over contiguous blocks in time: all families whitened - the whole held-out graph where the adapter solves
-   one - and its own target family in physical units), so an effect must predict data it was not fitted to.
+   one - and its own target family not worse by more than the sampling sigma of its paired held-out change), so an
+   effect must predict data it was not fitted to.
 3. Repeat until nothing significant is left.  No finding is a valid answer.
 4. When another candidate explains the data about as well as the accepted one (BIC within 6, "strong
    evidence" on Kass & Raftery's scale) and loses its own evidence once the accepted one is in, the finding
