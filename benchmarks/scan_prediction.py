@@ -48,17 +48,10 @@ def scan_data(sim) -> ScanData:
                     np.asarray(sc.error_sigmas, float), np.r_[np.full(3, sc.ins_jitter_rad), np.full(3, sc.ins_jitter_m)])
 
 
-def one_seed(task) -> dict:
-    name, scenario, seed = task
-    t0 = time.process_time()
-    sim = simulate_scan(scenario, seed=seed)
-    data = scan_data(sim)
-    drift = float(np.linalg.norm(sim.ins_r[-1] - sim.truth_r_all[-1]))
-    problem = scan_problem(data)
-    truth = sim.sphere_centers
-    if len(problem.centers0) != len(truth):
-        return {"scenario": name, "seed": seed, "skipped": f"{len(problem.centers0)} of {len(truth)} spheres found"}
-    problem, sol, theta = solve_scan(data, problem)
+
+def spacing_figures(sol, truth) -> dict:
+    """Sphere-distance errors of the graph's centres against the truth (m), their predicted sigmas, the spacing RMS
+    realised and predicted, and the NEES of the consecutive distances with their joint covariance."""
     match = np.array([int(np.argmin(np.linalg.norm(truth - c, axis=1))) for c in sol.centers])
     dist = sphere_distances(sol)
     errors = np.array([d - np.linalg.norm(truth[match[i]] - truth[match[j]]) for i, j, d, _ in dist])
@@ -70,7 +63,25 @@ def one_seed(task) -> dict:
         g = sol.centers[i] - sol.centers[i + 1]
         G[i, 3 * i:3 * i + 3], G[i, 3 * i + 3:3 * i + 6] = g / np.linalg.norm(g), -g / np.linalg.norm(g)
         consecutive[i] = np.linalg.norm(g) - np.linalg.norm(truth[match[i]] - truth[match[i + 1]])
-    nees_consecutive = float(consecutive @ np.linalg.solve(G @ sol.terms_centers_cov[15:, 15:] @ G.T, consecutive))
+    nees = float(consecutive @ np.linalg.solve(G @ sol.terms_centers_cov[15:, 15:] @ G.T, consecutive))
+    return {"spacing_rms_m": float(np.sqrt(np.mean(errors**2))), "predicted_rms_m": float(np.sqrt(np.mean(sigmas**2))),
+            "errors_m": errors.tolist(), "sigmas_m": sigmas.tolist(), "z": (errors / sigmas).tolist(),
+            "nees_consecutive": nees, "dof_consecutive": S - 1}
+
+
+def one_seed(task) -> dict:
+    name, scenario, seed = task
+    t0 = time.process_time()
+    sim = simulate_scan(scenario, seed=seed)
+    data = scan_data(sim)
+    drift = float(np.linalg.norm(sim.ins_r[-1] - sim.truth_r_all[-1]))
+    problem = scan_problem(data)
+    truth = sim.sphere_centers
+    if len(problem.centers0) != len(truth):
+        return {"scenario": name, "seed": seed, "skipped": f"{len(problem.centers0)} of {len(truth)} spheres found"}
+    problem, sol, theta = solve_scan(data, problem)
+    spacing = spacing_figures(sol, truth)
+    errors, sigmas = np.array(spacing["errors_m"]), np.array(spacing["sigmas_m"])
     e = theta - sim.error_terms
     # points: predicted sigma map, and the shape error of a sample of points (their placement by the corrected
     # poses against the true poses, minus the rigid part of the error terms' error, which the map leaves out)
@@ -91,7 +102,7 @@ def one_seed(task) -> dict:
     shape_error = np.linalg.norm(P[pick] - P_true[pick] - dp_rigid, axis=1)
     ratio = shape_error / sigma_points[pick]
     return {"scenario": name, "seed": seed, "drift_m": drift, "errors_m": errors.tolist(), "sigmas_m": sigmas.tolist(),
-            "nees_consecutive": nees_consecutive, "dof_consecutive": S - 1,
+            "nees_consecutive": spacing["nees_consecutive"], "dof_consecutive": spacing["dof_consecutive"],
             "theta_nees": float(e @ np.linalg.solve(sol.theta_cov, e)),
             "spacing_rms_m": float(np.sqrt(np.mean(errors**2))),
             "predicted_rms_m": float(np.sqrt(np.mean(sigmas**2))),

@@ -22,31 +22,14 @@ from scipy import stats
 
 from selfcal.graphs import scan as gs
 from selfcal.models import scan as ms
-from selfcal.pipelines.scan import register_frames, scan_problem, solve_scan, sphere_distances
+from selfcal.pipelines.scan import register_frames, scan_problem, solve_scan
 from selfcal.sim.scan import ScanScenario
 
 import _schema  # benchmarks/_schema.py: the results schema every benchmark writes
-from scan_prediction import scan_data
+from scan_prediction import scan_data, spacing_figures
 
 SCENARIO = ScanScenario()
 QUICK = ScanScenario(length_m=10.0, n_spheres=5, pixel_step=8)
-
-
-def spacing_figures(sol, truth) -> dict:
-    match = np.array([int(np.argmin(np.linalg.norm(truth - c, axis=1))) for c in sol.centers])
-    dist = sphere_distances(sol)
-    errors = np.array([d - np.linalg.norm(truth[match[i]] - truth[match[j]]) for i, j, d, _ in dist])
-    sigmas = np.array([s for *_, s in dist])
-    S = len(sol.centers)
-    G = np.zeros((S - 1, 3 * S))
-    consecutive = np.empty(S - 1)
-    for i in range(S - 1):
-        g = sol.centers[i] - sol.centers[i + 1]
-        G[i, 3 * i:3 * i + 3], G[i, 3 * i + 3:3 * i + 6] = g / np.linalg.norm(g), -g / np.linalg.norm(g)
-        consecutive[i] = np.linalg.norm(g) - np.linalg.norm(truth[match[i]] - truth[match[i + 1]])
-    nees = float(consecutive @ np.linalg.solve(G @ sol.terms_centers_cov[15:, 15:] @ G.T, consecutive))
-    return {"spacing_rms_m": float(np.sqrt(np.mean(errors**2))), "predicted_rms_m": float(np.sqrt(np.mean(sigmas**2))),
-            "z": (errors / sigmas).tolist(), "nees_consecutive": nees, "dof_consecutive": S - 1}
 
 
 def registration_nees(registrations, sim, jitter_sigmas) -> list[float]:
