@@ -161,9 +161,9 @@ def test_one_hour_at_50_hz_runs_in_seconds():
     rng = np.random.default_rng(0)
     gyro = rng.normal(0.0, 1e-3, size=(t.size, 3)) + BIAS_RAD_S
     f = np.tile([0.0, 0.0, G], (t.size, 1)) + rng.normal(0.0, 0.02, size=(t.size, 3))
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time: the machine is shared (other tests, other jobs)
     res = p.PatentDriftFilter(CUTOFF_HZ).run(t, gyro, f, np.full(t.size, 5.0))
-    elapsed = time.perf_counter() - start
+    elapsed = time.process_time() - start
     assert res.roll.shape == (180_000,)
     assert elapsed < 5.0
     assert np.max(np.abs(res.roll[t > 60])) < math.radians(0.1)

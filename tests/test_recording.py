@@ -131,9 +131,9 @@ def test_non_imu_sensor_and_optional_yaml(tmp_path):
 def test_reading_51k_rows_is_fast(tmp_path):
     t_ns, gyro, accel = random_imu(n=51_175, seed=1)
     write_recording(Recording(None, {"imu0": imu_sensor("imu0", t_ns, gyro, accel)}), tmp_path / "rec")
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time: the machine is shared (other tests, other jobs)
     rec = read_recording(tmp_path / "rec")
-    elapsed_s = time.perf_counter() - start
+    elapsed_s = time.process_time() - start
     assert np.array_equal(rec.sensors["imu0"].t_ns, t_ns)
     assert elapsed_s < 1.0, f"read took {elapsed_s:.2f} s"
 
