@@ -29,11 +29,14 @@ def clean():
     return ImuScenario(trajectory, accel=accel, gyro=gyro, noise=ImuNoise(), rate_hz=100.0).perturbed_measurements(3)
 
 
-def mutated(rec, columns=None, scale=1.0, value=None, rows=None, t_ns=None, meta=None):
+def mutated(rec, columns=None, scale=1.0, value=None, rows=None, t_ns=None, meta=None, clip=None):
     sensor = rec.sensors["imu0"]
     values = {c: v.copy() for c, v in sensor.values.items()}
     for c in columns or ():
-        if value is None:
+        if clip is not None:  # a sensor whose range is clip x the largest |value| the motion reached
+            limit = clip * np.max(np.abs(values[c]))
+            values[c] = np.clip(values[c], -limit, limit)
+        elif value is None:
             values[c] = values[c] * scale
         else:
             values[c][slice(None) if rows is None else rows] = value
@@ -54,6 +57,8 @@ MUTATIONS = {
     "gyro in deg/s": (dict(columns=GYRO_COLUMNS, scale=180 / np.pi), "deg/s"),
     "dead z accelerometer": (dict(columns=ACCEL_COLUMNS[2:], value=0.0), "constant"),
     "1e300 placeholder": (dict(columns=GYRO_COLUMNS[:1], value=1e300, rows=slice(100, 101)), "beyond any sensor"),
+    "gyro clipped at 80 % of the motion's peak": (dict(columns=GYRO_COLUMNS, clip=0.8), "saturated"),
+    "accelerometer clipped at 95 % of its peak": (dict(columns=ACCEL_COLUMNS, clip=0.95), "saturated"),
 }
 
 
@@ -100,11 +105,53 @@ def test_the_command_line_refuses_in_one_line_and_writes_nothing(clean, tmp_path
     assert not out.exists()
 
 
+def test_a_saturated_gyro_weakens_its_moves_and_is_refused_once_nothing_is_left(clean, tmp_path, capsys, caplog):
+    """Clipped at 95 % of the motion's peak, a few moves hold the limit: each is named, the calibration goes on
+    with the others (exit 0); clipped at 80 %, every move holds it: the gyro scale is then not determined, and
+    the command says so in one line (exit 1) and writes nothing."""
+    mild = write_recording(mutated(clean, columns=GYRO_COLUMNS, clip=0.95), tmp_path / "mild")
+    assert main(["calibrate", "imu", str(mild), "--out", str(tmp_path / "mild.yaml")]) == 0
+    named = [r.message for r in caplog.records if "limit of its range" in r.message]
+    assert 0 < len(named) < 11, named  # 11 moves between the 12 poses
+    hard = write_recording(mutated(clean, columns=GYRO_COLUMNS, clip=0.8), tmp_path / "hard")
+    capsys.readouterr()
+    assert main(["calibrate", "imu", str(hard), "--out", str(tmp_path / "hard.yaml")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not determined" in err[0], err
+    assert not (tmp_path / "hard.yaml").exists()
+
+
 @pytest.mark.parametrize("name", sorted(p.name for p in DATA.iterdir() if (p / "imu0").is_dir()))
 def test_every_shipped_recording_passes(name):
     rec = read_recording(DATA / name)
     for imu in rec.imu_names():
-        rec.imu(imu)
+        if name == "mpu6050_multiposition":  # its gyro saturates in two moves (below): read as calibrate imu does
+            rec.imu(imu, gyro_saturation_allowed=True)
+        else:
+            rec.imu(imu)
+
+
+def test_the_real_mpu6050_gyro_saturates_and_only_the_moves_it_falls_in_are_weakened(caplog):
+    """The MPU-6050 at its default +-250 deg/s range (4.3633 rad/s nominal; its datasheet sensitivity 131 LSB per
+    deg/s puts the 16-bit limit at 32768 / 131 deg/s = 4.3658 rad/s): its w_x sits at the limit for 10 samples and
+    its w_z for 6.  Read as-is it is refused (a saturated channel is no measurement); the calibration weakens the
+    two moves they fall in, with a note each, and leaves the other moves' sigmas at the gyro noise."""
+    from selfcal.graphs.imu import problem_from_imu
+    from selfcal.pipelines.imu import gravity_of
+    rec = read_recording(DATA / "mpu6050_multiposition")
+    with pytest.raises(RecordingError, match="saturated"):
+        rec.imu("imu0")
+    data = rec.imu("imu0", gyro_saturation_allowed=True)
+    limit_rad_s = 32768 / 131 * np.pi / 180
+    assert np.isclose(np.abs(data.gyro_rad_s[:, 0]).max(), limit_rad_s, rtol=1e-3)
+    problem = problem_from_imu(data, gravity_of(data))
+    weakened = [k for k, note in enumerate(problem.notes) if "limit of its range" in note]
+    assert len(weakened) == 2, problem.notes
+    sigmas = np.array([m.angle_sigma_rad for m in problem.moves])
+    named = sorted(int(note.split("move ")[1].split(" ")[0]) for note in problem.notes if "limit" in note)
+    others = np.delete(sigmas, named)
+    # weakened: the limit over >= 6 samples of 10 ms, 0.26 rad and more; the others: gyro noise, 1e-3 rad
+    assert np.all(sigmas[named] > 0.2) and np.all(others < 0.01), sigmas
 
 
 # --- outputs (issue 16, item 4) ---------------------------------------------------------------------------------

@@ -40,7 +40,7 @@ def calibrate(args) -> None:
     if args.out:
         write_yaml(args.out, out)
     if exports:
-        write_exports(args, rec.imu(names[0]), cal)
+        write_exports(args, rec.imu(names[0], gyro_saturation_allowed=True), cal)
 
 
 def write_exports(args, data, cal) -> None:

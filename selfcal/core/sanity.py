@@ -19,6 +19,10 @@ Numbers (why these and not others):
 * ranges: |a| beyond 2000 m/s^2 (200 g, above any navigation or consumer MEMS range) or |w| beyond
   100 rad/s (5700 deg/s) is no measurement (a 1e300 placeholder, a mis-parsed column).
 * a column with one value throughout is a dead channel.
+* a column that holds its extreme value for ``SATURATION_RUN`` samples in a row, far (``SATURATION_SIGMAS`` of its
+  sample-to-sample noise) from its median, is saturated: a sensor's noise and a moving signal never repeat a value
+  exactly at the edge of everything the column shows, a clipped output does (the motion exceeded the sensor's
+  range, and every sample at the limit under-reads by an unknown amount).
 * time: a gap longer than ``max(20 sample periods, 1 s)`` is data missing, not a slow logger (the bursty USB
   loggers of the real MPU-6050 recordings stall for up to 0.28 s, once 0.5 s in 11 minutes).  A system whose
   estimator cannot bridge less sets its own, tighter limit (the tracker: :data:`selfcal.pipelines.tracker.
@@ -113,11 +117,17 @@ SPEED_UNITS = ((1.0 / 1.943844, "knots? multiply by 0.514444"), (1.0 / 3.6, "km/
                (0.01, "cm/s? multiply by 0.01"), (1.0 / 2.236936, "mph? multiply by 0.44704"))
 
 
+SATURATION_RUN, SATURATION_SIGMAS = 5, 10.0
+
+
 def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x", "a_y", "a_z"),
-                 gaps_allowed: bool = False, rate_hz: float | None = None) -> list[str]:
+                 gaps_allowed: bool = False, rate_hz: float | None = None,
+                 gyro_saturation_allowed: bool = False) -> list[str]:
     """One line per physical problem of an IMU recording (empty: nothing found); ``columns`` names the six
     columns in the messages; ``gaps_allowed``: for an online replay, which starts over at a gap; ``rate_hz``:
-    the stated sample rate (sensor.yaml), to which the timestamps' spacing must be near."""
+    the stated sample rate (sensor.yaml), to which the timestamps' spacing must be near;
+    ``gyro_saturation_allowed``: for a caller that excludes saturated gyro samples itself (the multi-position
+    calibration weakens the moves they fall in, :mod:`selfcal.graphs.imu`)."""
     t = np.asarray(t_s, dtype=float)
     w = np.asarray(gyro_rad_s, dtype=float)
     a = np.asarray(accel_m_s2, dtype=float)
@@ -125,6 +135,8 @@ def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x
     for name, x in zip(columns, np.column_stack([w, a]).T):
         if x.size > 1 and np.ptp(x) == 0.0:
             out.append(f"column {name} is constant ({x[0]:g}) throughout: a dead channel, not a measurement")
+        elif not (gyro_saturation_allowed and name in columns[:3]):
+            out += _saturated(name, t, x)
     for label, x, limit, unit in (("accelerometer", a, MAX_ACCEL_M_S2, "m/s^2"), ("gyro", w, MAX_RATE_RAD_S, "rad/s")):
         with np.errstate(over="ignore", invalid="ignore"):
             norm = np.linalg.norm(x, axis=1)
@@ -143,6 +155,35 @@ def imu_problems(t_s, gyro_rad_s, accel_m_s2, columns=("w_x", "w_y", "w_z", "a_x
     if not out:
         out += _gyro_units(t, w, a) or _gyro_tilt_gain(t, w, a)
     return out
+
+
+def saturated_samples(x: np.ndarray) -> np.ndarray:
+    """Boolean mask of the samples of one column held at its extreme in runs of ``SATURATION_RUN`` or more, the
+    extreme ``SATURATION_SIGMAS`` sample-to-sample noise sigmas from the column's median (see the module)."""
+    x = np.asarray(x, dtype=float)
+    mask = np.zeros(x.size, bool)
+    if x.size < SATURATION_RUN or not np.all(np.isfinite(x)) or np.ptp(x) == 0.0:
+        return mask
+    noise = 1.4826 * float(np.median(np.abs(np.diff(x)))) / np.sqrt(2.0)  # robust: moves are few samples
+    if noise == 0.0:  # noise-free (simulated exact) or coarser than its quantum: repeats say nothing
+        return mask
+    for extreme in (float(x.max()), float(x.min())):
+        if abs(extreme - float(np.median(x))) <= SATURATION_SIGMAS * noise:
+            continue
+        at = np.r_[False, x == extreme, False]
+        for start, end in zip(np.flatnonzero(~at[:-1] & at[1:]), np.flatnonzero(at[:-1] & ~at[1:])):
+            if end - start >= SATURATION_RUN:
+                mask[start:end] = True
+    return mask
+
+
+def _saturated(name: str, t: np.ndarray, x: np.ndarray) -> list[str]:
+    mask = saturated_samples(x)
+    if not mask.any():
+        return []
+    i = int(np.argmax(mask))
+    return [f"column {name} sits at {x[i]:g} for {int(mask.sum())} samples (first at t = {t[i] - t[0]:.6g} s): "
+            f"saturated, the motion exceeded the sensor's range? samples at the limit are not measurements"]
 
 
 def _rate(t: np.ndarray, rate_hz: float | None) -> list[str]:

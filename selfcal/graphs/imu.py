@@ -22,6 +22,13 @@ note names the move.  The real recordings' clocks step at most 1.04 nominal peri
 100 Hz; the MPU-6050 and Xsens DOT recordings are uniform), so 3 periods is a gap and never jitter.  A bursty USB
 logger (the sunsided MPU-6050 logs: stalls of ~6 periods, then a burst) would have its turning moves weakened
 (honestly: its stamps do not say when the samples were taken); none of its logs is a multi-position one.
+
+Saturation in a move.  A gyro axis held at its limit (:func:`selfcal.core.sanity.saturated_samples`: the
+column's extreme repeated) under-reads the rotation by an unknown amount: the true rate is beyond the limit.
+Its 1-sigma is taken as the limit itself over the time held there (a true rate up to about twice the limit),
+root sum square over the axes, added in quadrature to the move's angle sigma, and a note names the move.  The
+real MPU-6050 recording (+-250 deg/s range) holds w_x at -4.3657 rad/s for 10 samples and w_z for 6: two of
+its moves are weakened so, the others unchanged.
 """
 from __future__ import annotations
 
@@ -35,6 +42,7 @@ from selfcal.core.solve import DegenerateDataError, marginal_covariances, optimi
 from selfcal.io.recording import ImuData
 from selfcal.models import imu
 from selfcal.core import so3
+from selfcal.core.sanity import saturated_samples
 from selfcal.core.static_intervals import detect_static_intervals, require_static_poses, static_poses
 
 U = gtsam.symbol_shorthand.U  # up-direction of static pose k
@@ -154,6 +162,7 @@ def problem_from_imu(data: ImuData, gravity_m_s2: float, **detector_options) -> 
                         float(np.mean(t_s[p.start:p.end])),
                         {name: float(np.mean(v[p.start:p.end])) for name, v in channels.items()}) for p in stats]
     dt_all = np.diff(t_s, append=t_s[-1] + np.median(np.diff(t_s)))
+    saturated = np.column_stack([saturated_samples(w) for w in data.gyro_rad_s.T])  # (n, 3)
     moves, notes = [], []
     for k, ((_, end), (start, _)) in enumerate(zip(intervals[:-1], intervals[1:])):
         # the last static sample is held until the first moving one: include it, so the whole move integrates
@@ -169,7 +178,15 @@ def problem_from_imu(data: ImuData, gravity_m_s2: float, **detector_options) -> 
             notes.append(f"{data.name}: move {k} ({t_s[idx[0]] - t_s[0]:.1f}-{t_s[idx[-1]] - t_s[0]:.1f} s) has a "
                          f"{float(dt.max()):.3g} s gap while turning: its rotation is known to {gap_sigma:.2g} rad "
                          f"only (gyro noise alone: {noise_sigma:.2g} rad)")
-        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt, float(np.hypot(noise_sigma, gap_sigma)),
+        held_s = np.sum(saturated[idx] * dt[:, None], axis=0)  # time each gyro axis sits at its limit
+        saturation_sigma = float(np.linalg.norm(np.max(np.abs(data.gyro_rad_s), axis=0) * held_s))
+        if saturation_sigma > 0.0:
+            axes = ", ".join(f"w_{a} {held:.2g} s" for a, held in zip("xyz", held_s) if held > 0)
+            notes.append(f"{data.name}: move {k} ({t_s[idx[0]] - t_s[0]:.1f}-{t_s[idx[-1]] - t_s[0]:.1f} s) has its "
+                         f"gyro at the limit of its range ({axes}): its rotation is known to {saturation_sigma:.2g} "
+                         f"rad only (gyro noise alone: {noise_sigma:.2g} rad)")
+        moves.append(Move(data.gyro_rad_s[idx], data.accel_m_s2[idx], dt,
+                          float(np.sqrt(noise_sigma**2 + gap_sigma**2 + saturation_sigma**2)),
                           t_s[idx], {name: v[idx] for name, v in channels.items()}))
     refs = {name: float(np.mean([p.channels[name] for p in poses])) for name in channels}
     return IntrinsicsProblem(poses, moves, gravity_m_s2, dict(data.channel_units), refs, notes)

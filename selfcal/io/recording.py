@@ -98,9 +98,10 @@ class Recording:
         """Names of the sensors that carry the six IMU columns, sorted."""
         return sorted(name for name, s in self.sensors.items() if all(c in s.values for c in IMU_UNITS))
 
-    def imu(self, name: str, gaps_allowed: bool = False) -> ImuData:
+    def imu(self, name: str, gaps_allowed: bool = False, gyro_saturation_allowed: bool = False) -> ImuData:
         """The IMU view of sensor ``name``; RecordingError if it is missing, not an IMU, or fails the physical
-        checks (:func:`selfcal.core.sanity.imu_problems`; ``gaps_allowed`` for an online replay)."""
+        checks (:func:`selfcal.core.sanity.imu_problems`; ``gaps_allowed`` for an online replay,
+        ``gyro_saturation_allowed`` for a caller that excludes saturated gyro samples itself)."""
         where = self.path if self.path is not None else "<recording>"
         if name not in self.sensors:
             why = f"; {name} skipped: {self.skipped[name]}" if name in self.skipped else ""
@@ -112,7 +113,7 @@ class Recording:
             raise RecordingError(f"{where}/{name}: not an IMU sensor (missing columns {', '.join(missing)})")
         problems = imu_problems((s.t_ns - s.t_ns[0]) * 1e-9, np.column_stack([s.values[c] for c in GYRO_COLUMNS]),
                                 np.column_stack([s.values[c] for c in ACCEL_COLUMNS]), GYRO_COLUMNS + ACCEL_COLUMNS,
-                                gaps_allowed, s.meta.get("rate_hz"))
+                                gaps_allowed, s.meta.get("rate_hz"), gyro_saturation_allowed)
         if problems:
             raise RecordingError(f"{where}/{name}: {problems[0]}")
         channels = {c: v for c, v in s.values.items() if c not in IMU_UNITS}

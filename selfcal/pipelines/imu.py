@@ -81,7 +81,7 @@ class ImuCalibration:
 
 def calibrate_imu(recording: Recording, sensor: str, spec: gi.IntrinsicsSpec = gi.IntrinsicsSpec(),
                   gravity_m_s2: float | None = None) -> ImuCalibration:
-    data = recording.imu(sensor)
+    data = recording.imu(sensor, gyro_saturation_allowed=True)  # the moves it falls in are weakened (graphs.imu)
     problem = gi.problem_from_imu(data, gravity_of(data, gravity_m_s2))
     for note in problem.notes:
         log.warning(note)
@@ -147,8 +147,10 @@ def audit_system(recording: Recording, base: str, sensors: list[str] | None = No
     throughout: bias and noise) or a multi-position recording (intrinsics)."""
     from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
     from selfcal.audit.imu.static import ImuStaticAudit, is_static_log
-    data = recording.imu(_imu_names(recording, sensors, 1)[0])
+    name = _imu_names(recording, sensors, 1)[0]
+    data = recording.imu(name, gyro_saturation_allowed=True)  # multi-position: the moves it falls in are weakened
     if is_static_log(data):
+        data = recording.imu(name)  # a static log has no move to weaken: a saturated gyro is refused
         if base != "bias":
             raise SelfcalError(f"{data.name}: a static log is audited against the base model 'bias', not {base!r}")
         return ImuStaticAudit(data)
