@@ -50,9 +50,9 @@ def test_calibrated_factor_jacobians(seed):
     assert_factor_jacobians(f, {X(0): random_pose(rng), V(0): rng.normal(0, 0.01, 3), O: rng.normal(0, 0.02, 1)})
     f = ft.calibrated_prism_velocity_factor(unit(3), X(0), V(0), rng.normal(0, 0.01, 3), rng.normal(0, 0.3, 3),
                                             [0.12, -0.05, 0.25], np.zeros(3), O, previous_velocity_key=V(1),
-                                            fraction=rng.uniform(0, 1), span_s=0.2)
+                                            fraction=rng.uniform(0, 1), span_s=0.2, lever_key=L)
     assert_factor_jacobians(f, {X(0): random_pose(rng), V(0): rng.normal(0, 0.1, 3), O: rng.normal(0, 0.02, 1),
-                                V(1): rng.normal(0, 0.1, 3)})
+                                V(1): rng.normal(0, 0.1, 3), L: rng.normal(0, 0.02, 3)})
     f = ft.calibrated_inclinometer_factor(unit(2), X(0), rng.normal(0, 0.03, 2), rng.normal(0, 0.003, 2),
                                           {"bias": D, "scale": S, "accel_sensitivity": A}, {})
     assert_factor_jacobians(f, {X(0): random_pose(rng), D: rng.normal(0, 1e-3, 2), S: rng.normal(0, 0.02, 1),
@@ -99,6 +99,12 @@ def test_calibrated_factors_vanish_on_exact_data():
         fac = ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Unit.Create(3), X(0), V(0), zv, w[i], sc.r_P_B,
                                                   a[i], offset_fixed=0.02)
         # neglected: 0.5 jerk dt^2 and the rotation rate's change over dt times the lever arm (< 1e-4 m/s)
+        np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-4)
+        # sensor.yaml's lever arm off by metres, the error known: the prism's rotation velocity is the true one
+        # (ignored, w x dr would leave up to 6e-4 m/s here: the steering turns at ~2e-4 rad/s)
+        dr = np.array([2.0, -1.0, 3.0])
+        fac = ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Unit.Create(3), X(0), V(0), zv, w[i],
+                                                  np.asarray(sc.r_P_B) - dr, a[i], offset_fixed=0.02, lever_fixed=dr)
         np.testing.assert_allclose(fac.unwhitenedError(values), 0.0, atol=1e-4)
 
 

@@ -405,7 +405,7 @@ class TrackerAudit:
         return ft.calibrated_inclinometer_factor(noise, X(m["k"]), m["z"] - correction, m["d"], keys, fixed,
                                                  term_columns=terms)
 
-    def _velocity_factor(self, m: dict, lo: int, offset_key, offset):
+    def _velocity_factor(self, m: dict, lo: int, lever_key, offset_key, lever, offset):
         k = m["k"]
         if k <= lo or "bridge" not in m:
             return None
@@ -413,7 +413,7 @@ class TrackerAudit:
         return ft.calibrated_prism_velocity_factor(gtsam.noiseModel.Isotropic.Sigma(3, b["sigma"]), X(k), V(k),
                                                    b["z"], m["w_B"], self.noise.r_P_B, m["a_W"], offset_key, offset,
                                                    previous_velocity_key=V(k - 1), fraction=b["fraction"],
-                                                   span_s=b["span_s"])
+                                                   span_s=b["span_s"], lever_key=lever_key, lever_fixed=lever)
 
     # --- graphs ----------------------------------------------------------------------------------------------
 
@@ -446,7 +446,8 @@ class TrackerAudit:
                     graph.add(factor)
         for m in self.velocity:
             if inside(m["k"]):
-                factor = self._velocity_factor(m, lo, key["tracker_time_offset"], offset)
+                factor = self._velocity_factor(m, lo, key["lever_arm_prism"], key["tracker_time_offset"], lever,
+                                               offset)
                 if factor is not None:
                     graph.add(factor)
         incl_keys = {"bias": key["incl_bias"], "scale": key["incl_scale"],

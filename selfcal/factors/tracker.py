@@ -163,28 +163,34 @@ def calibrated_prism_factor(noise, pose_key: int, p_P_W, r_P_B, v_W, lever_key: 
 def calibrated_prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_P_W, w_B, r_P_B, a_W,
                                      offset_key: int | None = None, offset_fixed: float = 0.0,
                                      previous_velocity_key: int | None = None, fraction: float = 1.0,
-                                     span_s: float | None = None) -> gtsam.CustomFactor:
-    """Tracker velocity with the audit's clock offset: ``e = v + R (w x r) - dt a - z`` (m/s, world).
+                                     span_s: float | None = None, lever_key: int | None = None,
+                                     lever_fixed=(0.0, 0.0, 0.0)) -> gtsam.CustomFactor:
+    """Tracker velocity with the audit's clock offset and lever arm: ``e = v + R (w x (r + dr)) - dt a - z``
+    (m/s, world).
 
     A tracker stamping ``dt`` late reports the velocity of ``dt`` earlier, ``v - dt a`` (``a_W``: the target's
-    acceleration over the keyframe interval, from the IMU, known).  Keys: pose, velocity, then the offset.
+    acceleration over the keyframe interval, from the IMU, known).  A prism displaced by ``dr`` from sensor.yaml's
+    lever arm moves with the rotation by ``R (w x dr)`` more (``lever_key``, or ``lever_fixed`` known): without it
+    a wrong lever arm left its rotation velocity in these factors, where an attitude offset could take it (a 3 cm
+    height error was named as a 1 mrad inclinometer bias).  Keys: pose, velocity, the lever arm, the offset.
 
     With ``previous_velocity_key`` (the previous keyframe's velocity variable, ``span_s`` before) ``v`` is the
     state velocity interpolated at the samples' mean position ``fraction`` in the interval, ``(1 - f) V_prev +
     f V``, and ``a = (V - V_prev) / span_s``; ``z`` is then the samples' mean minus what the IMU adds to a linear
     change over the interval (the Brownian bridge of its noise: uncorrelated with the IMU factor's own
     velocity increment, where samples moved to the keyframe with the IMU share its noise).  Keys: pose,
-    velocity, the offset, then the previous velocity.
+    velocity, the lever arm, the offset, then the previous velocity.
     """
-    z, w, r, a = (np.asarray(x, dtype=float) for x in (v_P_W, w_B, r_P_B, a_W))
-    keys = [pose_key, velocity_key] + ([offset_key] if offset_key is not None else [])
-    if previous_velocity_key is not None:
-        keys.append(previous_velocity_key)
+    z, w, r0, a = (np.asarray(x, dtype=float) for x in (v_P_W, w_B, r_P_B, a_W))
+    keys = [pose_key, velocity_key] + [key for key in (lever_key, offset_key, previous_velocity_key)
+                                       if key is not None]
     f = float(fraction)
 
     def error(this, values, H):
         R = values.atPose3(pose_key).rotation().matrix()
+        dr = values.atVector(lever_key) if lever_key is not None else np.asarray(lever_fixed, dtype=float)
         dt = float(values.atVector(offset_key)[0]) if offset_key is not None else float(offset_fixed)
+        r = r0 + dr
         v = values.atVector(velocity_key)
         acc = a
         if previous_velocity_key is not None:
@@ -193,12 +199,17 @@ def calibrated_prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_
             v = (1.0 - f) * v_prev + f * v
         e = mt.prism_velocity_W(R, v, w, r) - dt * acc - z
         if H is not None:
-            H[0], H[1] = mt.prism_velocity_jacobians(R, w, r)
+            H_pose, H_v = mt.prism_velocity_jacobians(R, w, r)
+            blocks = {pose_key: H_pose, velocity_key: H_v}
             if previous_velocity_key is not None:
-                H[1] = (f - dt / span_s) * H[1]
-                H[len(keys) - 1] = (1.0 - f + dt / span_s) * np.eye(3)
+                blocks[velocity_key] = (f - dt / span_s) * H_v
+                blocks[previous_velocity_key] = (1.0 - f + dt / span_s) * np.eye(3)
+            if lever_key is not None:  # d(R (w x dr)) / d dr = R [w]x
+                blocks[lever_key] = R @ so3.hat(w)
             if offset_key is not None:
-                H[2] = -acc[:, None]
+                blocks[offset_key] = -acc[:, None]
+            for i, key in enumerate(keys):
+                H[i] = blocks[key]
         return e
 
     return gtsam.CustomFactor(noise, keys, error)
