@@ -53,6 +53,11 @@ log = logging.getLogger(__name__)
 FAMILY_ALPHA = 1e-3  # family-wise false-finding probability per search step: a false finding sends a user
 # recalibrating for nothing, so it is kept rare (about 2 % of 20 null recordings may show one)
 AMBIGUITY_BIC = 6.0
+# ... or, where the rival has more parameters than BIC lets pass, its fit is within this whitened chi-square of the
+# accepted one (the data prefer the accepted by under ~2.5 sigma): a 3 cm prism height error and the 1 mrad
+# inclinometer pitch bias it resembles (seen from ~30 m, both tilt the camera's beam) differ by 4 in chi-square
+# and correlate 0.995 in a joint fit, one parameter apart (BIC 8.6 apart for that alone)
+AMBIGUITY_CHI2 = 6.0
 # An effect no catalog predicts needs stronger evidence than one physics expects: the library searches many
 # shapes after the fact, and what the models leave at the noise level (a static interval's last transient, a
 # pose's micro-motion) makes its many tests fail more often than the F distribution says.  Measured on 40 null
@@ -375,12 +380,27 @@ class Trial:
     f_stat: float
     p_value: float
     dof: int
+    log_p: float | None = None  # ln p where p underflows to 0 (strong effects): orders the evidence beyond it
+
+    @property
+    def evidence_order(self) -> float:
+        """ln p: smaller is stronger evidence, also where p itself underflows to 0."""
+        return self.log_p if self.log_p is not None else float(np.log(max(self.p_value, 1e-320)))
 
 
 def _trial(candidate: Candidate, f_stat: float, dof: int, dof_den: int) -> Trial:
     """A scored candidate; a library term picked by a search (the periodogram's peak frequency) is corrected for it."""
     p = float(stats.f.sf(f_stat, dof, dof_den))
-    return Trial(candidate, f_stat, p if candidate.term is None else candidate.term.search_corrected(p), dof)
+    p = p if candidate.term is None else candidate.term.search_corrected(p)
+    # two effects of thousands of sigmas both have p = 0: the one with the stronger evidence is tried first (a
+    # 4 mrad inclinometer bias, F = 35676, and the 13 cm lever arm it resembles, F = 22672, were tried in the
+    # catalog's order, and the lever arm, accepted first, kept the bias out on held-out data)
+    log_p = None
+    if p == 0.0:  # scipy's logsf underflows too there: the chi-square tail's leading term, -(dof F) / 2 (the
+        # explained whitened sum of squares; below ln(1e-308) = -709 exactly where p underflowed)
+        log_p = float(stats.f.logsf(f_stat, dof, dof_den))
+        log_p = log_p if np.isfinite(log_p) else -0.5 * dof * f_stat
+    return Trial(candidate, f_stat, p, dof, log_p)
 
 
 @dataclass
@@ -570,7 +590,7 @@ class _Search:
         ``LIBRARY_ATTEMPTS`` significant terms: each costs a refit and the cross-validation.
         """
         self.progress(f"{phase}: score {len(candidates)} candidates")
-        trials = sorted(self.score_many(candidates, self.fit), key=lambda t: t.p_value)
+        trials = sorted(self.score_many(candidates, self.fit), key=lambda t: t.evidence_order)
         threshold = (self.alpha if phase == "catalog" else self.library_alpha) / n_tests
         self.progress(f"step {len(self.history) + 1} ({phase}): {len(trials)} candidates, best "
                           f"{trials[0].candidate.key} p={trials[0].p_value:.3g}")
@@ -844,7 +864,7 @@ class _Search:
             return {}
         m_eff = self.library_tests(generic)
         out = {}
-        for trial in sorted(self.score_many(generic, self.fit), key=lambda t: t.p_value):
+        for trial in sorted(self.score_many(generic, self.fit), key=lambda t: t.evidence_order):
             label = trial.candidate.label
             if label not in out:
                 term = trial.candidate.term
@@ -888,9 +908,11 @@ def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, prev
         if stats.f.sf(f_stat, dof, dof_den) < threshold:
             continue  # still significant on top of the accepted effect: a separate effect, not a rival
         alternative = system.fit(previous_fit.effects + (trial.candidate,))
-        if alternative.bic() - accepted_bic < AMBIGUITY_BIC:
+        delta_chi2 = (alternative.rss - accepted_fit.rss) / variance_factor(accepted_fit)  # sigmas as measured
+        if alternative.bic() - accepted_bic < AMBIGUITY_BIC or delta_chi2 < AMBIGUITY_CHI2:
             rivals.append({"effect": trial.candidate.effect, "target": trial.candidate.label,
-                           "delta_bic_vs_accepted": alternative.bic() - accepted_bic})
+                           "delta_bic_vs_accepted": alternative.bic() - accepted_bic,
+                           "delta_chi2_vs_accepted": delta_chi2})
     return rivals
 
 
