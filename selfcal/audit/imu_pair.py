@@ -217,7 +217,7 @@ class ImuPairAudit:
         coords = {"time_s": t, "angular_rate": np.linalg.norm(dynamic.gyro0, axis=1),
                   "angular_acceleration": np.linalg.norm(dynamic.gyro_rate_dot0, axis=1)}
         gyro = dynamic.gyro0 - dynamic.gyro1.at(t - dt)[0] @ (R @ G_g).T - d_g
-        lever = np.einsum("nij,j->ni", inertial.lever_arm_jacobian(dynamic.gyro0, dynamic.gyro_rate_dot0), r)
+        lever = np.einsum("nij,j->ni", inertial.lever_arm_jacobian(dynamic.rate0, dynamic.gyro_rate_dot0), r)
         accel = dynamic.accel0 + lever - dynamic.accel1.at(t - dt)[0] @ (R @ G_a).T - d_a
         families = [
             ResidualFamily(self.imu1, "pair_gyro", "rad s^-1", gyro / (dynamic.gyro_sigma * self.scale["gyro"]), gyro,
@@ -292,7 +292,8 @@ def simulate_pair_like(system: ImuPairAudit, fit: Fit, seed: int, noise_fit: Fit
     w0, w_dot0 = fimu.Signal(d.t0_s, d.gyro0), fimu.Signal(d.t0_s, d.gyro_rate_dot0)
     a0 = fimu.Signal(d.t0_s, d.accel0)
     w, w_dot = w0.at(t1 + dt)[0], w_dot0.at(t1 + dt)[0]
-    f1_in_0 = a0.at(t1 + dt)[0] + np.einsum("nij,j->ni", inertial.lever_arm_jacobian(w, w_dot), r)
+    lever = inertial.lever_arm_jacobian(w - d.gyro_bias0, w_dot)
+    f1_in_0 = a0.at(t1 + dt)[0] + np.einsum("nij,j->ni", lever, r)
     to_imu1_g, to_imu1_a = np.linalg.inv(R @ G_g), np.linalg.inv(R @ G_a)
     # each pair residual carries both IMUs' noise: give imu1 the whole observed level (imu0's is in its data)
     gyro1 = (w - d_g) @ to_imu1_g.T + rng.normal(0, rms.get("gyro", 0.0) / np.sqrt(3), (len(t1), 3))
