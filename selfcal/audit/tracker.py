@@ -78,6 +78,18 @@ log = logging.getLogger(__name__)
 X, V, B = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B
 
 
+# The online pass starts from a pose prior built with sensor.yaml's lever arm and the inclinometer's first reading
+# (1 cm, 2 mrad): kept in the audit it pins the very quantities two catalog effects change, and a 3 cm prism height
+# error paid (3 / 1)^2 = 9 in it against its look-alike, the inclinometer pitch bias (noise-free data: 9.7 vs 0.6;
+# the lever arm then lost to the bias on most seeds).  The tracker measures the position and gravity, the
+# inclinometer and the beam camera the attitude, so the audit keeps only a gauge prior, far wider than both.
+GAUGE_PRIOR_SIGMAS = np.array([0.1, 0.1, 0.1, 1.0, 1.0, 1.0])  # rotation (rad), position (m)
+
+
+def _gauge_prior(prior: gtsam.PriorFactorPose3) -> gtsam.PriorFactorPose3:
+    return gtsam.PriorFactorPose3(prior.keys()[0], prior.prior(), gtsam.noiseModel.Diagonal.Sigmas(GAUGE_PRIOR_SIGMAS))
+
+
 @dataclass(frozen=True)
 class _Effect:
     key: int
@@ -209,6 +221,8 @@ class TrackerAudit:
                 self.velocity.append({"k": ks[0], **meta})
             elif tag == "cam0":
                 self.cam.append((factor, ks[0]))
+            elif isinstance(factor, gtsam.PriorFactorPose3):
+                self.other.append((_gauge_prior(factor), ks[0], ks[0]))
             else:
                 self.other.append((factor, min(ks), max(ks)))
         # the log holds deferred inclinometer factors after later keyframes' ones: time order for the residuals'
