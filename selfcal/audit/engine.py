@@ -908,7 +908,12 @@ def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, prev
         if stats.f.sf(f_stat, dof, dof_den) < threshold:
             continue  # still significant on top of the accepted effect: a separate effect, not a rival
         alternative = system.fit(previous_fit.effects + (trial.candidate,))
-        delta_chi2 = (alternative.rss - accepted_fit.rss) / variance_factor(accepted_fit)  # sigmas as measured
+        # in the sigmas the residuals show, and over the independent samples they hold (the score test's deflation
+        # for residuals correlated in time: waves; a ship's 2 % gyro scale and the lever arm it resembles scored
+        # F = 15.7 and 16.7 but their raw fits differed by ~30)
+        hook = getattr(system, "residual_correlation", None)
+        inflation = hook(accepted_fit) if hook else 1.0
+        delta_chi2 = (alternative.rss - accepted_fit.rss) / variance_factor(accepted_fit) / inflation
         if alternative.bic() - accepted_bic < AMBIGUITY_BIC or delta_chi2 < AMBIGUITY_CHI2:
             rivals.append({"effect": trial.candidate.effect, "target": trial.candidate.label,
                            "delta_bic_vs_accepted": alternative.bic() - accepted_bic,
