@@ -55,8 +55,8 @@ FAMILY_ALPHA = 1e-3  # family-wise false-finding probability per search step: a 
 AMBIGUITY_BIC = 6.0
 # ... or, where the rival has more parameters than BIC lets pass, its fit is within this whitened chi-square of the
 # accepted one (the data prefer the accepted by under ~2.5 sigma): a 3 cm prism height error and the 1 mrad
-# inclinometer pitch bias it resembles (seen from ~30 m, both tilt the camera's beam) differ by 4 in chi-square
-# and correlate 0.995 in a joint fit, one parameter apart (BIC 8.6 apart for that alone)
+# inclinometer pitch bias it resembles (seen from ~30 m, both tilt the camera's beam) fit 1.3 apart in
+# chi-square on noise-free data and correlate 0.995 in a joint fit, one parameter apart (BIC 8.6 for that alone)
 AMBIGUITY_CHI2 = 6.0
 # An effect no catalog predicts needs stronger evidence than one physics expects: the library searches many
 # shapes after the fact, and what the models leave at the noise level (a static interval's last transient, a
