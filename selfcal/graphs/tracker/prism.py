@@ -51,8 +51,8 @@ class PrismFactors:
         """The mean of the accepted tracker velocities moved to keyframe k, gated: [(factor, tag)] or []."""
         n, count = self.noise, len(samples)
         R_k, v_k, r = nav_k.attitude().matrix(), nav_k.velocity(), n.r_P_B
-        v_mean = prism_velocities_at_keyframe(samples, v_k).sum(axis=0) / count
         w_B = np.array([m.w_B for m in samples]).sum(axis=0) / count
+        v_mean = prism_velocities_at_keyframe(samples, nav_k, w_B, r).sum(axis=0) / count
         stat, nu = prism_velocity_innovation(v_mean, w_B, R_k, v_k, r, P_pose, P_vel, n.tracker_velocity_sigma_m_s,
                                              count)
         if not self.gate.decide("tracker0/velocity", samples[-1].t_ns, stat, nu, k):
