@@ -130,6 +130,7 @@ def main() -> None:
     _schema.add_arguments(parser, "audit_open_world_systems")
     parser.add_argument("--seeds", type=int, default=None, help="recordings per suite (default 20, quick 3)")
     parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated subset of " + ",".join(SYSTEMS))
+    parser.add_argument("--first-seed", type=int, default=2000, help="first seed (split a long run over processes)")
     parser.add_argument("--only", default=None, help="comma-separated system/suite cases (e.g. ship/heading): "
                                                      "run only these (the ship's take minutes per seed)")
     args = parser.parse_args()
@@ -144,7 +145,7 @@ def main() -> None:
                 continue
             named = sized = checked = false = refused = 0
             seconds = 0.0
-            for seed in range(2000, 2000 + n):
+            for seed in range(args.first_seed, args.first_seed + n):
                 t0 = time.perf_counter()
                 try:  # a recording the audit refuses (e.g. a fold without sphere points) is counted, not a crash
                     system, expected, check, allowed = make(suite, seed)
