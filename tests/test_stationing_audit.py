@@ -111,3 +111,19 @@ def test_cli_audits_an_imported_hilti_file(tmp_path):
           "--report", str(tmp_path / "o.html")])
     out = json.loads((tmp_path / "o.json").read_text())
     assert len(out["remaining"]) == 3 and (tmp_path / "o.html").stat().st_size > 0
+
+
+def test_two_hidden_effects_are_both_named_each_with_its_size():
+    """Base rocking with the arm's reach AND a distance error linear in range in one run: the search goes on after
+    the first accepted term (it once stopped there, leaving the real flat.yaml's base accelerometer unmodelled
+    behind the prism's arm error), and each term keeps its size within 3 of its sigmas."""
+    k_rock, k_range = 2e-4, 2e-3
+    sc = scenario(base_rock_rad_per_m=k_rock, range_error_per_m=k_range, base_position_m=(4.0, 9.0, -2.8))
+    out = audit_of(sc)
+    rock, distance = the_finding(out, "accel_base"), the_finding(out, "prism")
+    assert (rock["driver"], rock["form"], distance["driver"], distance["form"]) == ("arm_x", "poly1",
+                                                                                    "ts_range", "poly1")
+    for f, truth in ((rock, -sc.gravity_m_s2 * k_rock * sc.R_B_Abase[0, 0]), (distance, k_range)):
+        slope, sigma = f["estimate"]["coefficients"][0][0], f["std"]["coefficients"][0][0]
+        assert abs(slope - truth) < 3 * sigma, (f["target"], slope, sigma, truth)
+    assert len(out["findings"]) == 2

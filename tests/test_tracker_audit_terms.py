@@ -122,6 +122,17 @@ def test_audit_does_not_call_an_inclinometer_cross_coupling_a_prism_lever_arm():
     assert abs(est - coupling) <= 3 * std, (est, std)
 
 
+YAWED_RUN = dict(steer_angle_axes=(1.0, 1.0, 14.0), steer_period_s=(6.0, 15.0))  # +-51..57 deg of yaw
+
+
+def test_a_yawed_run_with_nothing_planted_shows_nothing():
+    """The null of the yaw test's run.  Yawing at up to ~1 rad/s, the prism's rotation velocity R (w x r) changes
+    within a keyframe; when the tracker's velocity samples were moved to the keyframe without that change, this
+    run read a -29 +- 2 ms clock offset (p = 1e-36) and a line-of-sight distance drift (p = 1e-49)."""
+    result = _plant_and_audit(lambda sc, rec: None, **YAWED_RUN)
+    assert result.findings == [], [(f["effect"], f.get("driver"), f.get("form")) for f in result.findings]
+
+
 def test_audit_names_an_inclinometer_error_harmonic_in_yaw():
     """The inclinometer reads roll + A sin(2 yaw + 0.5) and pitch - A/2 cos(2 yaw + 0.5), A = 4e-3 rad, while the
     target is yawed +-51..57 deg (steering weights (1, 1, 14), 6-15 s periods).  Over a yaw sweep of +-30 deg the
@@ -136,7 +147,7 @@ def test_audit_names_an_inclinometer_error_harmonic_in_yaw():
         inc.values["roll"] = inc.values["roll"] + amplitude * np.sin(2 * yaw + phase)
         inc.values["pitch"] = inc.values["pitch"] - 0.5 * amplitude * np.cos(2 * yaw + phase)
 
-    result = _plant_and_audit(plant, steer_angle_axes=(1.0, 1.0, 14.0), steer_period_s=(6.0, 15.0))
+    result = _plant_and_audit(plant, **YAWED_RUN)
     f = _only_finding(result)
     assert (f["effect"], f["driver"], f["form"], f["target"]) == ("unlisted", "yaw", "harmonic", "incl0/tilt")
     assert f["estimate"]["order"] == 2.0

@@ -273,3 +273,24 @@ def test_a_fault_free_run_raises_no_fault(seed):
         assert res.counts["held_out"] == 0 and res.counts["removed"] == 0, (noise_seed, res.counts)
         quiet = [d for d in res.decisions if d["decision"] == "quieter_than_model"]
         assert len(quiet) == (1 if noise_seed is None else 0), (noise_seed, quiet)
+
+
+def test_prism_velocity_moved_to_the_keyframe_carries_the_rotation_part():
+    """A tracker velocity sample 50 ms before the keyframe, moved with the exact states at both instants, is the
+    prism's velocity at the keyframe (the factor's ``v_k + R_k (w_k x r)``).  Moved by the body's velocity change
+    alone it kept 50 ms-old ``R (w x r)``: a run yawed +-55 deg then read a -29 ms tracker clock offset."""
+    import gtsam
+    from selfcal.graphs.tracker.alignment import Pending, prism_velocities_at_keyframe
+    from selfcal.models import tracker as mt
+    sc = TrackerScenario(duration_s=20.0, seed=3, steer_angle_axes=(1.0, 1.0, 14.0), steer_period_s=(6.0, 15.0),
+                         steer_angle_deg=(1.0, 2.0))
+    t_m, t_k = np.array([7.95]), np.array([8.0])
+    (R_m,), (p_m,), (v_m,), _, (w_m,), _ = sc.kinematics(t_m)
+    (R_k,), (p_k,), (v_k,), _, (w_k,), _ = sc.kinematics(t_k)
+    nav = lambda R, p, v: gtsam.NavState(gtsam.Rot3(R), p, v)  # noqa: E731
+    sample = Pending("tracker0", 0, np.zeros(3), nav(R_m, p_m, v_m),
+                     velocity_W=mt.prism_velocity_W(R_m, v_m, w_m, sc.r_P_B), w_B=w_m)
+    moved = prism_velocities_at_keyframe([sample], nav(R_k, p_k, v_k), w_k, sc.r_P_B)[0]
+    at_k = mt.prism_velocity_W(R_k, v_k, w_k, sc.r_P_B)
+    np.testing.assert_allclose(moved, at_k, atol=1e-12)
+    assert np.linalg.norm(R_m @ mt.cross(w_m, sc.r_P_B) - R_k @ mt.cross(w_k, sc.r_P_B)) > 1e-3  # it matters here
