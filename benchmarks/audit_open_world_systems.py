@@ -187,7 +187,10 @@ def main() -> None:
                     system, expected, check, allowed = make(suite, seed)
                     result = run_audit(system)
                     findings = result.to_json()["findings"]
-                    z = planted_size_in_sigma(system, result, suite, findings)
+                    try:  # a term the final model already holds (a cubic named for a quadratic) has no sigma on top
+                        z = planted_size_in_sigma(system, result, suite, findings)
+                    except SelfcalError:
+                        z = None
                 except SelfcalError as err:
                     refused += 1
                     print(f"  {system_name}/{suite} seed {seed} refused: {err}", flush=True)
