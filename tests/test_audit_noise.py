@@ -6,7 +6,6 @@ that the audit finds the bias instability a MEMS IMU has and that the extended m
 """
 import json
 import math
-from pathlib import Path
 
 import allantools
 import numpy as np
@@ -20,10 +19,11 @@ from selfcal.core.allan import (AllanCurve, allan_curve, avar_gauss_markov, avar
 from selfcal.core.inertial import ImuNoise
 from selfcal.sim.imu import ImuScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
+from shared_data import SHARED_DATA
 
 RATE_HZ = 100.0
 G_M_S2 = 9.80665
-ADIS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "imudata_adis16405_static"
+ADIS_DIR = SHARED_DATA / "imudata_adis16405_static"
 
 
 def gauss_markov(rng, n, sigma, tau_c_s, rate_hz=RATE_HZ, axes=3):

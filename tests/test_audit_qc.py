@@ -27,8 +27,9 @@ from selfcal.cli.main import main
 from selfcal.factors.qc import sphere_returns_factor
 from selfcal.graphs import qc as gq
 from selfcal.sim.qc import LidarSphereScenes
+from shared_data import SHARED_DATA
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "spherecalib_lidar_2cam_sphere"
+SHARED = SHARED_DATA / "spherecalib_lidar_2cam_sphere"
 SHIPPED = Path(__file__).resolve().parents[1] / "data" / "spherecalib_lidar"
 NOMINAL_M = 0.3
 

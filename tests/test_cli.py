@@ -3,7 +3,6 @@
 Most checks run ``selfcal.cli.main.main`` in-process (stdout/stderr captured by capsys); one runs the installed
 ``selfcal`` console script in a subprocess, to prove the entry point declared in pyproject.toml.
 """
-import os
 import re
 import subprocess
 import sys
@@ -20,10 +19,11 @@ from selfcal.io.recording import read_recording
 from selfcal.core.inertial import ImuNoise
 from selfcal.sim.imu import ImuPairScenario, ImuScenario
 from selfcal.sim.trajectories import HandheldTrajectory, MultiPositionTrajectory
+from shared_data import SHARED_DATA
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 XSENS_REC = REPO_ROOT / "data" / "xsens_mti_multiposition"
-SHARED = Path(os.environ.get("SELFCAL_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+SHARED = SHARED_DATA
 XSENS_SOURCE = SHARED / "imu_tk_xsens_multiposition"
 
 

@@ -5,7 +5,6 @@ Tolerances come from the sensors' datasheets or the recording itself, as stated 
 """
 import importlib.util
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +13,10 @@ import pytest
 from selfcal.io.importers import (IMPORTERS, MPU6050_ACCEL_COUNTS_PER_M_S2, import_ansfl_quadrotor,
                                   import_imu_tk_xsens, import_mpu6050_tomisuarez)
 from selfcal.io.recording import RecordingError, read_recording, write_recording
+from shared_data import SHARED_DATA
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("SELFCAL_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+SHARED = SHARED_DATA
 XSENS = SHARED / "imu_tk_xsens_multiposition"
 MPU = SHARED / "mpu6050_tedaldi_calib_tomisuarez"
 ANSFL = SHARED / "ansfl_quadrotor_4xsensdot_rtk"

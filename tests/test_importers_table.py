@@ -5,7 +5,6 @@ counts); importing must give back the simulated SI samples (to the last bit or t
 the exact nanosecond, and every map mistake must be refused in one line naming the map and the key.
 """
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +17,10 @@ from selfcal.io.imu_table import import_imu_table, read_imu_map
 from selfcal.io.recording import RecordingError, read_recording
 from selfcal.sim.imu import ImuScenario
 from selfcal.sim.trajectories import MultiPositionTrajectory
+from shared_data import SHARED_DATA
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("SELFCAL_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+SHARED = SHARED_DATA
 G = 9.80665
 DEG = math.pi / 180.0
 # a float64 conversion x * c or x / c is correctly rounded; the text written here is the shortest repr of the

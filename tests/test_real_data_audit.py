@@ -10,9 +10,10 @@ import pytest
 from selfcal.io.importers import import_sunsided_mpu6050
 from selfcal.io.recording import read_recording
 from selfcal.pipelines.audit import audit_recording
+from shared_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
-SUNSIDED = ROOT.parent / "shared" / "data" / "sunsided_mpu6050_hmc5883l_marg"
+SUNSIDED = SHARED_DATA / "sunsided_mpu6050_hmc5883l_marg"
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +71,7 @@ def test_sunsided_static_log_with_temperature(capsys):
         assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]
 
 
-ADIS = ROOT.parent / "shared" / "data" / "imudata_adis16405_static" / "adis16405_static_run1.npz"
+ADIS = SHARED_DATA / "imudata_adis16405_static" / "adis16405_static_run1.npz"
 
 
 @pytest.mark.skipif(not ADIS.exists(), reason="shared/data/imudata_adis16405_static not present")

@@ -3,7 +3,6 @@
 Shipped recordings are read from data/; the public datasets in place from ../shared/data (skipped, with the
 reason, where absent).  Run with ``-s`` to see the measured figures.
 """
-import os
 from pathlib import Path
 
 import numpy as np
@@ -14,10 +13,11 @@ from selfcal.io.importers import import_ansfl_quadrotor
 from selfcal.io.recording import ACCEL_COLUMNS, read_recording
 from selfcal.pipelines.imu import calibrate_imu
 from selfcal.pipelines.imu_pair import calibrate_imu_pair
+from shared_data import SHARED_DATA
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA = REPO_ROOT / "data"
-SHARED = Path(os.environ.get("SELFCAL_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+SHARED = SHARED_DATA
 
 # data/xsens_mti_multiposition/SOURCE.md: the Xsens factory ("datasheet") calibration of this unit, counts per SI unit
 XSENS_ACCEL_COUNTS_PER_M_S2 = np.array([415.0, 413.0, 415.0])

@@ -13,6 +13,7 @@ from selfcal.graphs.ship import (B_KEY, GYRO_SCALE_KEY, R_KEY, Keyframe, ShipGra
 from selfcal.models import ship
 from selfcal.core import so3
 from selfcal.sim.ship import ShipScenario
+from shared_data import SHARED_DATA
 
 RI, RJ, B, S = gtsam.symbol("r", 0), gtsam.symbol("r", 1), gtsam.symbol("b", 0), gtsam.symbol("s", 0)
 G = 9.80665
@@ -232,7 +233,7 @@ def test_gyro_scale_estimates_scatter_as_their_sigma():
 
 # --- real data --------------------------------------------------------------------------------------------------
 
-SUNSIDED = Path(__file__).resolve().parents[2] / "shared" / "data" / "sunsided_mpu6050_hmc5883l_marg"
+SUNSIDED = SHARED_DATA / "sunsided_mpu6050_hmc5883l_marg"
 TURNS = {"rotate-ccw-around-x-pointing-forward": 0, "rotate-ccw-around-y-pointing-left": 1,
          "rotate-ccw-around-z-pointing-up": 2}
 

@@ -1,7 +1,6 @@
 """The ship estimators on a real MPU-6050 log (sunsided, EUPL: read in place): a board at rest for 2 minutes with
 a gyro bias of about 4.5 deg/s on x.  The tilt is known: it never changes, and the accelerometer's mean over the
 first 2 s gives it (0.02 m/s^2 noise over 200 samples: 0.01 deg)."""
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,9 @@ from selfcal.graphs.ship import ShipGraphOptions, ShipSmoother
 from selfcal.io.importers import import_sunsided_mpu6050
 from selfcal.core.inertial import tilt_from_specific_force
 from selfcal.pipelines.ship import ship_inputs
+from shared_data import SHARED_DATA
 
-LOG = Path(__file__).resolve().parents[2] / "shared" / "data" / "sunsided_mpu6050_hmc5883l_marg" / \
+LOG = SHARED_DATA / "sunsided_mpu6050_hmc5883l_marg" / \
     "unmoved-with-x-pointing-forward"
 
 

@@ -9,9 +9,10 @@ import pytest
 from selfcal.io.pointcloud import read_point_cloud
 from selfcal.pipelines.qc.checks import run_qc
 from selfcal.pipelines.qc.spec import QCSpec
+from shared_data import SHARED_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "spherecalib_lidar_2cam_sphere"
+DATA = SHARED_DATA / "spherecalib_lidar_2cam_sphere"
 SPEC = ROOT / "docs" / "qc_specs" / "spherecalib_lidar.yaml"
 
 NOMINAL_RADIUS_M = 0.3  # upstream example3.m: "the radius of the calibration sphere was around 0.3 meter"

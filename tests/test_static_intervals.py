@@ -8,10 +8,11 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy.spatial.transform import Rotation, Slerp
 
 from selfcal.core import static_intervals as si
+from shared_data import SHARED_DATA
 
 G = 9.81
 RATE_HZ = 100.0
-DATA = Path("/work/shared/data")
+DATA = SHARED_DATA
 XSENS_ACC = DATA / "imu_tk_xsens_multiposition" / "xsens_acc.mat.gz"
 MPU_CALIB = DATA / "mpu6050_tedaldi_calib_tomisuarez" / "example_data_calibration.csv.gz"
 

@@ -1,6 +1,5 @@
 """Stationing calibration (prism lever arm, column pivot, tilt-accelerometer mountings): factors, simulation,
 and the Hilti total-station datasets read in place."""
-from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -15,8 +14,9 @@ from selfcal.models.stationing import chain_transforms
 from selfcal.sim.stationing import StationingScenario
 
 from factor_checks import assert_factor_jacobians
+from shared_data import SHARED_DATA
 
-HILTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "hilti_stationing_totalstation_accelerometers"
+HILTI = SHARED_DATA / "hilti_stationing_totalstation_accelerometers"
 needs_hilti = pytest.mark.skipif(not (HILTI / "flat.yaml").is_file(),
                                  reason=f"Hilti stationing dataset not found at {HILTI}")
 

@@ -7,7 +7,6 @@ effects (the system has no catalog).
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,10 +15,9 @@ from selfcal.audit.engine import run_audit
 from selfcal.audit.stationing import StationingAudit
 from selfcal.graphs.stationing import FileGeometry
 from selfcal.sim.stationing import StationingScenario
+from shared_data import SHARED_DATA
 
-HILTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "hilti_stationing_totalstation_accelerometers"
-if not HILTI.exists():
-    HILTI = Path("/work/shared/data/hilti_stationing_totalstation_accelerometers")
+HILTI = SHARED_DATA / "hilti_stationing_totalstation_accelerometers"
 SENSOR = "stationing0"
 
 
