@@ -95,8 +95,10 @@ def main() -> None:
             rows.append(_schema.row(f"{name}: findings", "count", len(r.get("findings", [])), None, better="higher",
                                     note="real recording, no baseline (the patents' methods have no audit)"))
             rows.append(_schema.row(f"{name}: audit wall time", "s", r["seconds"], None))
-    _schema.write(args.json, "audit_real", "audit", args.quick, time.perf_counter() - start, rows,
-                  extra={"recordings": results})
+            # written after every recording: a run stopped on the way (the Hilti files take minutes each) keeps
+            # what it measured
+            _schema.write(args.json, "audit_real", "audit", args.quick, time.perf_counter() - start, rows,
+                          extra={"recordings": results, "complete": len(results) == len(names)})
 
 
 if __name__ == "__main__":
