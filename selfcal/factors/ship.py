@@ -16,20 +16,22 @@ import numpy as np
 from selfcal.models import ship
 
 
-def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: int | None = None,
+def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lever_arm_key: int | None = None,
                 speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0),
                 speed_key: int | None = None, offset_channels=(), known_offset_rad=(0.0, 0.0)) -> gtsam.CustomFactor:
     """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
-    (without a lever-arm key, the known ``lever_arm_m`` is used).
+    (without a lever-arm key, the known ``lever_arm_m`` is used).  The hull's known acceleration: the log's
+    ``surge_m_s2`` (dv/dt) and ``vw_S`` (speed times body rate, :func:`selfcal.models.ship.hull_acceleration_W`).
 
     ``offset_channels`` ``(key, phi)``: a tilt offset ``k phi`` (``k`` a Vector2, rad per unit of ``phi``, this
     keyframe's value of a driver's basis function: the audit's generic terms); ``known_offset_rad`` one already
     fitted (held-out prediction).
 
     Without a speed source, ``speed_key`` (Vector1, the speed through the water in m/s) stands for the speed
-    log: ``a_known_S`` is then the acceleration per unit speed, ``(0, yaw rate, 0)``, and the speed is the gain
+    log: ``surge_m_s2`` is then 0 and ``vw_S`` the body rate (the acceleration per unit speed), and the speed is the gain
     ``1 + k`` of :func:`selfcal.models.ship.level_residual` (so its Jacobian is the one on ``k``)."""
-    f_S, A_S, a_known_S, known_r = (np.asarray(x, dtype=float) for x in (f_S, A_S, a_known_S, lever_arm_m))
+    f_S, A_S, vw_S, known_r = (np.asarray(x, dtype=float) for x in (f_S, A_S, vw_S, lever_arm_m))
+    surge_m_s2 = float(surge_m_s2)
     if speed_key is not None and speed_scale_key is not None:
         raise ValueError("a speed-log scale and an unknown speed exclude each other")
     gain_key = speed_key if speed_key is not None else speed_scale_key
@@ -43,7 +45,8 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, a_known_S, lever_arm_key: in
         k = values.atVector(gain_key)[0] if gain_key is not None else 0.0
         if speed_key is not None:
             k -= 1.0  # gain (1 + k) = the speed
-        e, H_R, H_r, H_k = ship.level_residual(values.atRot3(rotation_key).matrix(), f_S, A_S, r, a_known_S, k)
+        e, H_R, H_r, H_k = ship.level_residual(values.atRot3(rotation_key).matrix(), f_S, A_S, r, surge_m_s2, vw_S,
+                                                    k)
         if H is not None:
             H[0] = H_R
             slot = 1

@@ -18,7 +18,7 @@ per bias segment of ``bias_segment_s``.  Factors, all GTSAM's own:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -156,10 +156,13 @@ class Keyframe:
     dt_s: np.ndarray  # (n,)
     accel_m_s2: np.ndarray  # (3,) specific force averaged over ``tilt_average_s``, centred on t_s
     A_S: np.ndarray  # (3, 3) lever-arm matrix [w_dot]x + [w]x^2 at t_s
-    a_known_S: np.ndarray  # (3,) hull acceleration known from the speed log and the yaw rate
+    a_known_S: np.ndarray  # (3,) (dv/dt, v w_z, 0): the level-ship guide to the known hull acceleration (drivers,
+    # sigma, start values); the tilt factor takes it exactly from a_known_S[0] and vw_S (models.ship.hull_acceleration_W)
     has_speed: bool = False
     tilt_sigma_rad: float = 0.01  # per axis (:func:`tilt_sigma_rad`)
-    yaw_rate_rad_s: float = 0.0  # averaged like the force: the centrifugal term of an unknown speed
+    w_S: np.ndarray = field(default_factory=lambda: np.zeros(3))  # body rate averaged like the force, rad/s: the
+    # centripetal term of an unknown speed
+    vw_S: np.ndarray = field(default_factory=lambda: np.zeros(3))  # log speed times body rate, averaged likewise
 
 
 def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
@@ -175,7 +178,9 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     # what is subtracted from the averaged force is averaged the same way (the residual is linear in them)
     A = uniform_filter1d(A, size=n_average, axis=0, mode="nearest")
     a_known = uniform_filter1d(a_known, size=n_average, axis=0, mode="nearest")
-    yaw_rate = uniform_filter1d(inputs.gyro_rad_s[:, 2], size=n_average, mode="nearest")
+    w = uniform_filter1d(inputs.gyro_rad_s, size=n_average, axis=0, mode="nearest")
+    vw = (uniform_filter1d(inputs.speed_m_s[:, None] * inputs.gyro_rad_s, size=n_average, axis=0, mode="nearest")
+          if inputs.speed_m_s is not None and options.remove_known_acceleration else np.zeros_like(w))
     frames, previous = [], None
     for i in index:
         span = slice(previous, i) if previous is not None else slice(0, 0)
@@ -183,7 +188,7 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
         sigma = tilt_sigma_rad(noise_var[i], n_average, a_known[i] if has_speed else None, f_mean[i],
                                inputs.gravity_m_s2, options)
         frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], f_mean[i], A[i], a_known[i],
-                               has_speed, sigma, float(yaw_rate[i])))
+                               has_speed, sigma, w[i], vw[i]))
         previous = i
     return frames
 
@@ -223,14 +228,15 @@ class ShipGraph:
         the audit's terms, default the newest)."""
         options = self.options
         speed_scale = options.estimate_speed_scale and frame.has_speed
-        a_known = frame.a_known_S if speed_scale else (1.0 + options.speed_scale) * frame.a_known_S
+        gain = 1.0 if speed_scale else 1.0 + options.speed_scale
+        surge, vw = gain * frame.a_known_S[0], gain * frame.vw_S
         speed = self.speed_key(frame.t_s) if self.unknown_speed(frame) else None
         if speed is not None:
-            a_known = ship.known_acceleration_S(1.0, 0.0, frame.yaw_rate_rad_s)  # per m/s of speed
+            surge, vw = 0.0, frame.w_S  # per m/s of speed
         k = self.k if k is None else k
         known = sum((coefficient * phi[k] for coefficient, phi in self.known_terms), np.zeros(2))
         return tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), rotation_key, frame.accel_m_s2,
-                           frame.A_S, a_known, LEVER_ARM_KEY if options.estimate_lever_arm else None,
+                           frame.A_S, surge, vw, LEVER_ARM_KEY if options.estimate_lever_arm else None,
                            SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed,
                            [(key, phi[k]) for key, phi in self.term_columns], known)
 

@@ -248,14 +248,15 @@ class OnlineShipTracker:
             rate = _slope(st, sv) if len(st) >= 3 else 0.0
             a_known = ship.known_acceleration_S(speed, rate, np.mean(gyro[averaged, 2]))
         else:
-            a_known = np.zeros(3)
+            a_known, speed = np.zeros(3), 0.0
         first = self.last_keyframe_index is None
         span = slice(0, 0) if first else slice(self.last_keyframe_index, i)
         f_mean, noise_var = ship.averaged_specific_force(accel, n_average, n_noise)
         sigma = tilt_sigma_rad(noise_var[i], n_average, a_known if has_speed else None, f_mean[i],
                                self.graph.gravity_m_s2, self.options)
+        w_mean = np.mean(gyro[averaged], axis=0)
         frame = Keyframe(float(t[i]), gyro[span], np.diff(t)[span], f_mean[i], A, a_known, has_speed, sigma,
-                         float(np.mean(gyro[averaged, 2])))
+                         w_mean, speed * w_mean)
         (roll, pitch, yaw), bias, cov = self.online.add(frame, covariance=True)
         # drop what no later keyframe needs: samples before this keyframe's derivative window
         keep = max(0, min(i, int(np.searchsorted(t, t[i] - 0.5 * self.options.angular_acceleration_window_s))))
