@@ -169,3 +169,53 @@ def test_hull_acceleration_is_the_simulated_hull_s_on_a_rolling_turning_voyage()
              - ship.hull_acceleration_W(R_W_S[i] @ gtsam.Rot3.Expmap(-h * e).matrix(), v_dot[i], v[i] * w_S[i])[0])
             / (2 * h) for e in np.eye(3) for h in [1e-6]])
         np.testing.assert_allclose(H, numeric, atol=1e-7)
+
+
+def test_euler_angles_and_their_jacobian():
+    """``euler_zyx`` inverts ``Rz(yaw) Ry(pitch) Rx(roll)`` and its Jacobian on a right perturbation matches central
+    differences at random attitudes."""
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        roll, pitch, yaw = rng.uniform(-1.2, 1.2, 3)
+        R_W_S = gtsam.Rot3.Ypr(yaw, pitch, roll).matrix()
+        angles, J = ship.euler_zyx(R_W_S)
+        np.testing.assert_allclose(angles, [roll, pitch, yaw], atol=1e-12)
+        h = 1e-6
+        numeric = np.column_stack([(ship.euler_zyx(R_W_S @ gtsam.Rot3.Expmap(h * e).matrix())[0]
+                                    - ship.euler_zyx(R_W_S @ gtsam.Rot3.Expmap(-h * e).matrix())[0]) / (2 * h)
+                                   for e in np.eye(3)])
+        np.testing.assert_allclose(J, numeric, atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_offsets_in_the_attitude_have_jacobians_and_vanish_on_exact_data(seed):
+    """A generic term in the heading (the audit's ``AttitudeColumn``: the basis evaluated at the state's own
+    heading), fitted and known: Jacobians at a random point (the basis' slope on the attitude included), and zero
+    error where the force carries exactly that offset."""
+    from selfcal.audit.ship import AttitudeColumn
+    from selfcal.audit.terms import Coordinate, terms_for
+    rng = np.random.default_rng(seed + 30)
+    R_W_S, A, hull, r, k = random_case(rng)
+    heading = Coordinate("heading", np.linspace(-3.0, 3.0, 50), "rad", "angle")
+    term = next(t for t in terms_for([heading]) if t.form == "harmonic")
+    columns = [AttitudeColumn(term, j, np.array([ship.euler_zyx(R_W_S.matrix())[0][2]])) for j in range(2)]
+    keys = [gtsam.symbol("u", j) for j in range(2)]
+    coefficients = [rng.normal(0, 0.01, 2) for _ in range(2)]
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, 0.01)
+    f = rng.normal(0, 0.5, 3) + np.array([0.0, 0.0, G])
+    fitted = tilt_factor(noise, R, f, A, *hull, L, K, offset_channels=[(key, c[0]) for key, c in zip(keys, columns)],
+                         known_offsets=[(rng.normal(0, 0.01, 2), columns[0][0])])
+    assert_factor_jacobians(fitted, {R: R_W_S, L: r, K: k, keys[0]: coefficients[0], keys[1]: coefficients[1]},
+                            atol=1e-5)
+    # exact data: the force tilted by the offset the term states at this heading
+    offset = sum(c * col[0](R_W_S.matrix())[0] for c, col in zip(coefficients, columns))
+    a_W = ship.hull_acceleration_W(R_W_S.matrix(), *hull)[0]
+    # the residual is the horizontal part of unit(R f_c - a_W): the corrected force tilted by the offset
+    tilted = G * np.array([offset[0], offset[1], np.sqrt(1.0 - offset @ offset)])
+    f_exact = R_W_S.matrix().T @ (tilted + (1 + k[0]) * a_W) + A @ r
+    exact = tilt_factor(noise, R, f_exact, A, *hull, L, K, offset_channels=[(key, c[0]) for key, c in zip(keys, columns)])
+    values = gtsam.Values()
+    for key, value in ((L, r), (K, k), (keys[0], coefficients[0]), (keys[1], coefficients[1])):
+        values.insert(key, value)
+    values.insert(R, R_W_S)
+    np.testing.assert_allclose(exact.unwhitenedError(values), 0.0, atol=1e-12)

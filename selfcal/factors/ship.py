@@ -18,14 +18,15 @@ from selfcal.models import ship
 
 def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lever_arm_key: int | None = None,
                 speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0),
-                speed_key: int | None = None, offset_channels=(), known_offset_rad=(0.0, 0.0)) -> gtsam.CustomFactor:
+                speed_key: int | None = None, offset_channels=(), known_offsets=()) -> gtsam.CustomFactor:
     """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
     (without a lever-arm key, the known ``lever_arm_m`` is used).  The hull's known acceleration: the log's
     ``surge_m_s2`` (dv/dt) and ``vw_S`` (speed times body rate, :func:`selfcal.models.ship.hull_acceleration_W`).
 
     ``offset_channels`` ``(key, phi)``: a tilt offset ``k phi`` (``k`` a Vector2, rad per unit of ``phi``, this
-    keyframe's value of a driver's basis function: the audit's generic terms); ``known_offset_rad`` one already
-    fitted (held-out prediction).
+    keyframe's value of a driver's basis function: the audit's generic terms); ``known_offsets`` ``(k, phi)`` ones
+    already fitted (held-out prediction).  ``phi`` is a number, or a function of the attitude ``R_W_S -> (phi,
+    dphi/dxi (3,))`` for a driver that is the attitude itself (roll, pitch, heading: the term follows the state).
 
     Without a speed source, ``speed_key`` (Vector1, the speed through the water in m/s) stands for the speed
     log: ``surge_m_s2`` is then 0 and ``vw_S`` the body rate (the acceleration per unit speed), and the speed is the gain
@@ -36,19 +37,25 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lev
         raise ValueError("a speed-log scale and an unknown speed exclude each other")
     gain_key = speed_key if speed_key is not None else speed_scale_key
     keys = [rotation_key] + [k for k in (lever_arm_key, gain_key) if k is not None]
-    channels = [(key, float(phi)) for key, phi in offset_channels]
+    channels = [(key, phi if callable(phi) else float(phi)) for key, phi in offset_channels]
     keys += [key for key, _ in channels]
-    known = np.asarray(known_offset_rad, dtype=float)
+    known = [(np.asarray(k, dtype=float), phi) for k, phi in known_offsets]
 
     def error(this, values, H):
         r = values.atVector(lever_arm_key) if lever_arm_key is not None else known_r
         k = values.atVector(gain_key)[0] if gain_key is not None else 0.0
         if speed_key is not None:
             k -= 1.0  # gain (1 + k) = the speed
-        e, H_R, H_r, H_k = ship.level_residual(values.atRot3(rotation_key).matrix(), f_S, A_S, r, surge_m_s2, vw_S,
-                                                    k)
+        R_W_S = values.atRot3(rotation_key).matrix()
+        e, H_R, H_r, H_k = ship.level_residual(R_W_S, f_S, A_S, r, surge_m_s2, vw_S, k)
+        offset, H_offset, basis = np.zeros(2), np.zeros((2, 3)), []
+        for coefficient, phi in known + [(values.atVector(key), phi) for key, phi in channels]:
+            value, d_value = phi(R_W_S) if callable(phi) else (phi, np.zeros(3))
+            offset += coefficient * value
+            H_offset += np.outer(coefficient, d_value)
+            basis.append(value)
         if H is not None:
-            H[0] = H_R
+            H[0] = H_R - H_offset
             slot = 1
             if lever_arm_key is not None:
                 H[slot] = H_r
@@ -56,9 +63,9 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lev
             if gain_key is not None:
                 H[slot] = H_k
                 slot += 1
-            for j, (_, phi) in enumerate(channels):
-                H[slot + j] = -phi * np.eye(2)
-        return e - known - sum((phi * values.atVector(key) for key, phi in channels), np.zeros(2))
+            for j, value in enumerate(basis[len(known):]):
+                H[slot + j] = -value * np.eye(2)
+        return e - offset
 
     return gtsam.CustomFactor(noise, keys, error)
 

@@ -205,9 +205,10 @@ class ShipGraph:
         self.k = -1  # index of the last keyframe added
         self.last_speed_key: int | None = None  # the unknown speed's newest segment
         # the audit's generic terms: (key, phi over this graph's keyframes) tilt offsets, fitted (key in the
-        # graph) or, for a held-out part, known (values given: subtracted)
-        self.term_columns: list[tuple[int, np.ndarray]] = []
-        self.known_terms: list[tuple[np.ndarray, np.ndarray]] = []  # (k (2,), phi over the keyframes)
+        # graph) or, for a held-out part, known (values given: subtracted); phi[k] a number or a function of the
+        # attitude (factors.ship.tilt_factor)
+        self.term_columns: list[tuple[int, object]] = []
+        self.known_terms: list[tuple[np.ndarray, object]] = []  # (k (2,), phi over the keyframes)
 
     def bias_key(self, t_s: float) -> int:
         """The gyro bias segment of ``t_s``; one bias for the whole voyage when the sensor states no random walk
@@ -234,7 +235,7 @@ class ShipGraph:
         if speed is not None:
             surge, vw = 0.0, frame.w_S  # per m/s of speed
         k = self.k if k is None else k
-        known = sum((coefficient * phi[k] for coefficient, phi in self.known_terms), np.zeros(2))
+        known = [(coefficient, phi[k]) for coefficient, phi in self.known_terms]
         return tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), rotation_key, frame.accel_m_s2,
                            frame.A_S, surge, vw, LEVER_ARM_KEY if options.estimate_lever_arm else None,
                            SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed,

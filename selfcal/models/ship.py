@@ -56,6 +56,21 @@ def hull_acceleration_W(R_W_S: np.ndarray, surge_m_s2: float, vw_S: np.ndarray) 
     return a_W, H
 
 
+def euler_zyx(R_W_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(roll, pitch, yaw) of ``R_W_S = Rz(yaw) Ry(pitch) Rx(roll)``, rad, and their Jacobian (3x3) on a right
+    perturbation ``R Exp(xi)``: each entry moves as ``d R_ij = -(R [e_j]x xi)_i``."""
+    dR = [-R_W_S @ so3.hat(e) for e in np.eye(3)]  # d (R e_j) / d xi, column j of R
+    roll = np.arctan2(R_W_S[2, 1], R_W_S[2, 2])
+    pitch = -np.arcsin(np.clip(R_W_S[2, 0], -1.0, 1.0))
+    yaw = np.arctan2(R_W_S[1, 0], R_W_S[0, 0])
+    m = R_W_S[2, 1] ** 2 + R_W_S[2, 2] ** 2
+    n = R_W_S[0, 0] ** 2 + R_W_S[1, 0] ** 2
+    d_roll = (R_W_S[2, 2] * dR[1][2] - R_W_S[2, 1] * dR[2][2]) / m
+    d_pitch = -dR[0][2] / np.sqrt(max(1.0 - R_W_S[2, 0] ** 2, 1e-300))
+    d_yaw = (R_W_S[0, 0] * dR[0][1] - R_W_S[1, 0] * dR[0][0]) / n
+    return np.array([roll, pitch, yaw]), np.vstack([d_roll, d_pitch, d_yaw])
+
+
 def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: np.ndarray,
                    surge_m_s2: float = 0.0, vw_S=(0.0, 0.0, 0.0), speed_scale: float = 0.0):
     """Horizontal part of the measured force direction in the world frame: zero when the hull's up is measured.
