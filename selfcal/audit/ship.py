@@ -22,8 +22,9 @@ rotation since the last keyframe.
 Generic terms (:mod:`selfcal.audit.terms`): a tilt offset ``k phi(x)`` (``k`` two components, rad per unit)
 inside each keyframe's tilt factor, in the drivers ``time``, ``roll``, ``pitch``, ``heading`` (rad, the gyro-carried
 heading from the start: never measured absolutely), ``speed`` (the log's, when there is one),
-``angular_acceleration``, ``surge_acceleration`` and ``centripetal_acceleration``.  Roll, pitch and heading are
-those of the first full fit the library sees, fixed for the recording.
+``angular_acceleration``, ``surge_acceleration`` and ``centripetal_acceleration``.  A smooth term in roll, pitch or
+heading is evaluated at each keyframe's attitude state (:class:`AttitudeColumn`); the first full fit the library
+sees gives the other drivers' values, the heading's branch and the ranges the findings report.
 
 Folds interleave blocks of ``FOLD_BLOCK_S`` (even / odd blocks in time), and every fit keeps the whole gyro chain:
 a fold's graph holds the tilt factors of its own blocks only, the attitudes elsewhere carried by the gyro.  The
