@@ -167,3 +167,13 @@ def test_folds_interleave_blocks_on_the_whole_gyro_chain():
         held = system.heldout(fit, fold)[0]
         assert len(held.whitened) + len(times) == len(t)
         assert set(block[np.isin(t, held.coordinates["time_s"])] % 2) == {1 - fold}
+
+
+def test_a_gyro_stated_noiseless_is_refused_in_one_line():
+    """sensor.yaml with gyroscope_noise_density 0 (a user's typo): the gyro chain would be called exact and the
+    audit's least squares broke inside numpy (LinAlgError, measured); it is refused with the reason instead."""
+    from selfcal.io.recording import RecordingError
+    rec = ShipScenario(kind="heave", duration_s=30.0, seed=3, lever_arm_m=(0.0, 0.0, 0.0)).perturbed_measurements(103)
+    rec.sensors["imu0"].meta["gyroscope_noise_density"] = 0.0
+    with pytest.raises(RecordingError, match="gyroscope_noise_density must be positive"):
+        ship_inputs(rec)

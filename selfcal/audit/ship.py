@@ -143,9 +143,12 @@ class ShipAudit:
         trusts the gyro over the tilt, the attitude follows the gyro's integrated noise, and the tilt residuals
         carry that smooth error: structure in time the audit then names (measured: 2 of 20 null voyages at the
         stated 2 mrad floor, none at the 0.3-0.5 mrad the simulated voyages really show).  Per pass, ``floor^2 =
-        mean(e^2) - mean(white^2)`` (the tilt residuals' variance less the part the measured accelerometer noise
-        explains); the residuals are taken as the noise itself (the attitudes absorb little of it between gyro
-        links), which sets the floor a little low, not high."""
+        mean((e_k - e_k-1)^2) / 2 - mean(white^2)``: the keyframe-to-keyframe spread of the tilt residuals (blind to
+        misfits slower than a keyframe, which are the search's business) less the part the measured accelerometer
+        noise explains.  The residuals are taken as the noise itself (the attitudes absorb little of it between
+        gyro links), which sets the floor a little low, not high.  Fewer than 3 keyframes: the stated floor stays."""
+        if len(self.frames) < 3:
+            return
         for _ in range(FLOOR_PASSES):
             fit = self.fit(())
             floor2 = self.options.tilt_floor_rad ** 2

@@ -43,9 +43,12 @@ def ship_inputs(recording: Recording, imu_name: str = "imu0") -> ShipInputs:
         else:
             speed = np.interp(t_imu, t_log, s.values[column])
     meta = data.meta
+    gyro_noise = float(meta.get("gyroscope_noise_density", 1e-4))
+    if not gyro_noise > 0.0:  # the graph weighs the gyro chain by it: 0 would call the gyro exact (singular)
+        raise RecordingError(f"{imu_name}: gyroscope_noise_density must be positive, sensor.yaml says {gyro_noise}")
     return ShipInputs(data.t_s, data.gyro_rad_s, data.accel_m_s2, speed,
                       float(meta.get("gravity_m_s2", inertial.STANDARD_GRAVITY_M_S2)),
-                      float(meta.get("gyroscope_noise_density", 1e-4)),
+                      gyro_noise,
                       float(meta.get("gyroscope_random_walk", 1e-5)), speed_rate)
 
 
