@@ -145,14 +145,14 @@ class ShipAudit:
         stated 2 mrad floor, none at the 0.3-0.5 mrad the simulated voyages really show).  Per pass, ``floor^2 =
         mean((e_k - e_k-1)^2) / 2 - mean(white^2)``: the keyframe-to-keyframe spread of the tilt residuals (blind to
         misfits slower than a keyframe, which are the search's business) less the part the measured accelerometer
-        noise explains.  The residuals are taken as the noise itself (the attitudes absorb little of it between
-        gyro links), which sets the floor a little low, not high.  Fewer than 3 keyframes: the stated floor stays."""
+        noise explains (the hull terms, the speed log's rate among them, are slow: the spread does not see them).
+        The residuals are taken as the noise itself (the attitudes absorb little of it between gyro links), which
+        sets the floor a little low, not high.  Fewer than 3 keyframes: the stated floor stays."""
         if len(self.frames) < 3:
             return
         for _ in range(FLOOR_PASSES):
             fit = self.fit(())
-            floor2 = self.options.tilt_floor_rad ** 2
-            white2 = np.mean([f.tilt_sigma_rad ** 2 - floor2 for f in self.frames])
+            white2 = np.mean([f.noise_tilt_sigma_rad ** 2 for f in self.frames])
             e = fit.families[0].physical
             spread = float(np.mean(np.diff(e, axis=0) ** 2)) / 2.0  # keyframe to keyframe: blind to slow misfits
             measured = np.sqrt(max(spread - white2, MIN_FLOOR_RAD ** 2))
@@ -251,7 +251,7 @@ class ShipAudit:
         sigma = np.array([frame.tilt_sigma_rad for frame in frames])
         coords = {"time_s": np.array([f.t_s for f in frames]),
                   "angular acceleration": np.array([np.linalg.norm(f.A_S) for f in frames]),
-                  "surge acceleration": np.array([f.a_known_S[0] for f in frames]),
+                  "surge acceleration": self._surge_driver()[rows],
                   "centripetal acceleration": np.array([f.a_known_S[1] for f in frames]),
                   ROTATION_COORDINATE: np.array([np.linalg.norm(f.gyro_rad_s.T @ f.dt_s) for f in frames])}
         return [ResidualFamily(self.sensor, "tilt", "rad", e / sigma[:, None], e, coords)]
@@ -275,9 +275,17 @@ class ShipAudit:
         if self.has_speed:
             drivers["speed"] = np.interp(t, self.inputs.t_s, self.inputs.speed_m_s)
         drivers.update(angular_acceleration=np.array([np.linalg.norm(f.A_S) for f in self.frames]),
-                       surge_acceleration=np.array([f.a_known_S[0] for f in self.frames]),
+                       surge_acceleration=self._surge_driver(),
                        centripetal_acceleration=np.array([f.a_known_S[1] for f in self.frames]))
         return drivers
+
+    def _surge_driver(self) -> np.ndarray:
+        """Surge acceleration per keyframe, m/s^2, as a driver: the log's slow rate where it has one (the rate the
+        tilt is corrected by carries the log's noise, which is in the residual too: see ``smoothed_speed``)."""
+        t = np.array([f.t_s for f in self.frames])
+        if self.inputs.slow_speed_rate_m_s2 is not None:
+            return np.interp(t, self.inputs.t_s, self.inputs.slow_speed_rate_m_s2)
+        return np.array([f.a_known_S[0] for f in self.frames])
 
     def catalog_term(self, candidate: Candidate) -> None:
         return None  # no catalog effect of the ship is a single tilt offset in one driver

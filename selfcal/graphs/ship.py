@@ -52,6 +52,8 @@ class ShipInputs:
     gyro_noise_density: float = 1e-4  # rad s^-1 / sqrt(Hz)
     gyro_random_walk: float = 1e-5  # rad s^-2 / sqrt(Hz)
     speed_rate_m_s2: np.ndarray | None = None  # d speed / dt on the IMU times, when the source gives it
+    speed_rate_sigma_m_s2: np.ndarray | None = None  # its 1-sigma (pipelines.ship.smoothed_speed)
+    slow_speed_rate_m_s2: np.ndarray | None = None  # smoothed far more: the audit's surge driver (smoothed_speed)
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,7 @@ def smooth_derivative(t_s: np.ndarray, x: np.ndarray, window_s: float) -> np.nda
 
 
 def tilt_sigma_rad(noise_var_m2_s4: float, n_average: int, a_known_S: np.ndarray | None, f_S: np.ndarray, g: float,
-                   options: ShipGraphOptions) -> float:
+                   options: ShipGraphOptions, surge_sigma_m_s2: float = 0.0) -> float:
     """The sigma (rad, per axis) of one keyframe's tilt.
 
     Terms: the measured noise across the force averaged over ``n_average`` samples; the floor of unmodelled
@@ -134,9 +136,10 @@ def tilt_sigma_rad(noise_var_m2_s4: float, n_average: int, a_known_S: np.ndarray
     does not tilt the force (the patent's point) and must not weigh it down.  Without one (``a_known_S`` None),
     ``|f| - g`` is the only evidence of unmodelled motion (turns, a hand moving a board), weak as it is (a
     horizontal ``a`` changes it by ``a^2 / 2g``), and the sigma grows with ``unknown_acceleration_gain`` times it.
+    ``surge_sigma_m_s2``: the 1-sigma of the surge acceleration the speed source gives (the rate of a noisy log).
     """
     if a_known_S is not None:
-        hull = options.known_acceleration_relative_sigma * np.linalg.norm(a_known_S)
+        hull = np.hypot(options.known_acceleration_relative_sigma * np.linalg.norm(a_known_S), surge_sigma_m_s2)
     else:
         hull = options.unknown_acceleration_gain * abs(np.linalg.norm(f_S) - g)
     return float(np.sqrt(noise_var_m2_s4 / max(n_average, 1) / g**2 + options.tilt_floor_rad**2 + (hull / g) ** 2))
@@ -163,6 +166,8 @@ class Keyframe:
     w_S: np.ndarray = field(default_factory=lambda: np.zeros(3))  # body rate averaged like the force, rad/s: the
     # centripetal term of an unknown speed
     vw_S: np.ndarray = field(default_factory=lambda: np.zeros(3))  # log speed times body rate, averaged likewise
+    noise_tilt_sigma_rad: float = 0.0  # the part of tilt_sigma_rad the accelerometer's noise makes: white from one
+    # keyframe to the next, unlike the floor and the hull terms (offline keyframes; the audit measures the floor by it)
 
 
 def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
@@ -181,14 +186,16 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     w = uniform_filter1d(inputs.gyro_rad_s, size=n_average, axis=0, mode="nearest")
     vw = (uniform_filter1d(inputs.speed_m_s[:, None] * inputs.gyro_rad_s, size=n_average, axis=0, mode="nearest")
           if inputs.speed_m_s is not None and options.remove_known_acceleration else np.zeros_like(w))
+    surge_sigma = (inputs.speed_rate_sigma_m_s2 if inputs.speed_rate_sigma_m_s2 is not None
+                   else np.zeros_like(t))
     frames, previous = [], None
     for i in index:
         span = slice(previous, i) if previous is not None else slice(0, 0)
         has_speed = inputs.speed_m_s is not None and options.remove_known_acceleration
         sigma = tilt_sigma_rad(noise_var[i], n_average, a_known[i] if has_speed else None, f_mean[i],
-                               inputs.gravity_m_s2, options)
+                               inputs.gravity_m_s2, options, surge_sigma[i])
         frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], f_mean[i], A[i], a_known[i],
-                               has_speed, sigma, w[i], vw[i]))
+                               has_speed, sigma, w[i], vw[i], np.sqrt(noise_var[i] / n_average) / inputs.gravity_m_s2))
         previous = i
     return frames
 
