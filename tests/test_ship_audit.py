@@ -97,6 +97,24 @@ def test_a_heading_locked_bias_at_18_sigma_is_named_and_sized_on_the_seed_the_fo
     assert np.all(np.abs(amplitude - a / G) < 3 * sigma), (amplitude, sigma, a / G)
 
 
+def test_a_heading_locked_bias_on_a_braking_voyage_is_named_alone():
+    """Voyage seed 2003 of the heading suite (noise seed 2103) brakes at 0.47 m/s^2.  The surge acceleration the
+    tilt is corrected by is the rate of a 1 Hz speed log (5 cm/s): off by 0.011-0.015 m/s^2 RMS (1.1-1.5 mrad of tilt,
+    more than the accelerometer's noise), and a driver computed from that same rate carries the same error, so
+    terms in it fitted the log's own noise (a cubic and a product in surge acceleration named beside the heading
+    term, with the rate's sigma in the tilt sigma already).  With the rate's sigma stated and the driver the log's
+    slow rate, the heading term is named, sized within 3 sigma, and nothing else."""
+    a = 0.1
+    sc = ShipScenario(kind="turning", duration_s=300.0, seed=2003, lever_arm_m=(0.0, 0.0, 0.0),
+                      accel_bias_of=lambda t, e: a * np.column_stack([np.cos(e[:, 2]), np.sin(e[:, 2]), 0 * t]))
+    result = run_audit(ShipAudit(ship_inputs(sc.perturbed_measurements(2103)), keyframe_s=1.0)).to_json()
+    assert [(f.get("driver"), f.get("form")) for f in result["findings"]] == [("heading", "harmonic")], \
+        result["findings"]
+    finding = result["findings"][0]
+    amplitude, sigma = np.array(finding["estimate"]["amplitude"]), np.array(finding["std"]["amplitude"])
+    assert np.all(np.abs(amplitude - a / G) < 3 * sigma), (amplitude, sigma, a / G)
+
+
 @pytest.mark.parametrize("seed", [2018, 2019])
 def test_null_heave_voyages_that_showed_structure_in_time_are_silent(seed):
     """The null voyages of benchmarks/audit_open_world_systems.py (noise seed 100 + seed) where the audit named a
