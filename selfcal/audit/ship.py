@@ -119,6 +119,8 @@ class ShipAudit:
     name = "ship"
     folds = 2
     base_model = "attitude"
+    information_form = True  # score tests from the normal equations: the base graph is full rank (R0 and bias
+    # priors); on 300 s voyages the dense Jacobian's SVDs were a quarter of an audit (same F to 1e-11, 40 % faster)
 
     def __init__(self, inputs: ShipInputs, sensor: str = "imu0", keyframe_s: float = AUDIT_KEYFRAME_S):
         self.inputs, self.sensor = inputs, sensor
