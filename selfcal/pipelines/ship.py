@@ -26,9 +26,9 @@ def ship_inputs(recording: Recording, imu_name: str = "imu0") -> ShipInputs:
 
     The speed is a smoothing spline through the log's samples, its smoothing chosen by generalised
     cross-validation (scipy's ``make_smoothing_spline``): the log's own noise sets how much is smoothed, so the
-    surge acceleration (the spline's derivative) carries neither the noise nor a fixed window's lag.
+    surge acceleration (the spline's derivative) carries neither the noise nor a fixed window's lag; its sigma and
+    a slow rate for the audit's driver come with it (:func:`smoothed_speed`).
     """
-    from scipy.interpolate import make_smoothing_spline
     imu = recording.imu(imu_name)
     check_speed(recording, imu)
     data = uniformly_sampled(imu)
