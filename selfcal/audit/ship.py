@@ -249,14 +249,15 @@ class ShipAudit:
     def _families(self, values, builder: ShipGraph, part) -> list[ResidualFamily]:
         rows = self._rows(part)
         frames = [self.frames[j] for j in rows]
-        e = np.array([builder.tilt_factor(self.frames[j], R_KEY(j), j).unwhitenedError(values) for j in rows])
-        sigma = np.array([frame.tilt_sigma_rad for frame in frames])
+        e = np.array([builder.tilt_factor(self.frames[j], R_KEY(j), j, along_track=False).unwhitenedError(values)
+                      for j in rows])
+        normalized = np.array([builder.tilt_factor(self.frames[j], R_KEY(j), j).whitenedError(values) for j in rows])
         coords = {"time_s": np.array([f.t_s for f in frames]),
                   "angular acceleration": np.array([np.linalg.norm(f.A_S) for f in frames]),
                   "surge acceleration": self._surge_driver()[rows],
                   "centripetal acceleration": np.array([f.a_known_S[1] for f in frames]),
                   ROTATION_COORDINATE: np.array([np.linalg.norm(f.gyro_rad_s.T @ f.dt_s) for f in frames])}
-        return [ResidualFamily(self.sensor, "tilt", "rad", e / sigma[:, None], e, coords)]
+        return [ResidualFamily(self.sensor, "tilt", "rad", normalized, e, coords)]
 
     # --- the generic term library -----------------------------------------------------------------------------
 

@@ -18,7 +18,8 @@ from selfcal.models import ship
 
 def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lever_arm_key: int | None = None,
                 speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0),
-                speed_key: int | None = None, offset_channels=(), known_offsets=()) -> gtsam.CustomFactor:
+                speed_key: int | None = None, offset_channels=(), known_offsets=(),
+                along_track_ratio: float = 0.0) -> gtsam.CustomFactor:
     """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
     (without a lever-arm key, the known ``lever_arm_m`` is used).  The hull's known acceleration: the log's
     ``surge_m_s2`` (dv/dt) and ``vw_S`` (speed times body rate, :func:`selfcal.models.ship.hull_acceleration_W`).
@@ -30,7 +31,11 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lev
 
     Without a speed source, ``speed_key`` (Vector1, the speed through the water in m/s) stands for the speed
     log: ``surge_m_s2`` is then 0 and ``vw_S`` the body rate (the acceleration per unit speed), and the speed is the gain
-    ``1 + k`` of :func:`selfcal.models.ship.level_residual` (so its Jacobian is the one on ``k``)."""
+    ``1 + k`` of :func:`selfcal.models.ship.level_residual` (so its Jacobian is the one on ``k``).
+
+    ``along_track_ratio``: the speed log rate's error along the heading over the isotropic sigma of ``noise``
+    (both in rad of tilt); the residual is weighed down along the heading by it
+    (:func:`selfcal.models.ship.along_track_weight`), so ``noise`` stays the cross-track sigma."""
     f_S, A_S, vw_S, known_r = (np.asarray(x, dtype=float) for x in (f_S, A_S, vw_S, lever_arm_m))
     surge_m_s2 = float(surge_m_s2)
     if speed_key is not None and speed_scale_key is not None:
@@ -54,18 +59,22 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lev
             offset += coefficient * value
             H_offset += np.outer(coefficient, d_value)
             basis.append(value)
+        e = e - offset
+        W, H_W = np.eye(2), np.zeros((2, 3))
+        if along_track_ratio > 0.0:
+            e, W, H_W = ship.along_track_weight(R_W_S, e, along_track_ratio)
         if H is not None:
-            H[0] = H_R - H_offset
+            H[0] = W @ (H_R - H_offset) + H_W
             slot = 1
             if lever_arm_key is not None:
-                H[slot] = H_r
+                H[slot] = W @ H_r
                 slot += 1
             if gain_key is not None:
-                H[slot] = H_k
+                H[slot] = W @ H_k
                 slot += 1
             for j, value in enumerate(basis[len(known):]):
-                H[slot + j] = -value * np.eye(2)
-        return e - offset
+                H[slot + j] = -value * W
+        return e
 
     return gtsam.CustomFactor(noise, keys, error)
 

@@ -127,8 +127,10 @@ def smooth_derivative(t_s: np.ndarray, x: np.ndarray, window_s: float) -> np.nda
 
 
 def tilt_sigma_rad(noise_var_m2_s4: float, n_average: int, a_known_S: np.ndarray | None, f_S: np.ndarray, g: float,
-                   options: ShipGraphOptions, surge_sigma_m_s2: float = 0.0) -> float:
-    """The sigma (rad, per axis) of one keyframe's tilt.
+                   options: ShipGraphOptions) -> float:
+    """The sigma (rad, per axis) of one keyframe's tilt (the speed log rate's error, along the heading only, is
+    apart: ``Keyframe.along_track_sigma_rad``).
+
 
     Terms: the measured noise across the force averaged over ``n_average`` samples; the floor of unmodelled
     slow accelerations; and the hull's acceleration.  With a speed source (``a_known_S`` given) the hull's
@@ -136,10 +138,9 @@ def tilt_sigma_rad(noise_var_m2_s4: float, n_average: int, a_known_S: np.ndarray
     does not tilt the force (the patent's point) and must not weigh it down.  Without one (``a_known_S`` None),
     ``|f| - g`` is the only evidence of unmodelled motion (turns, a hand moving a board), weak as it is (a
     horizontal ``a`` changes it by ``a^2 / 2g``), and the sigma grows with ``unknown_acceleration_gain`` times it.
-    ``surge_sigma_m_s2``: the 1-sigma of the surge acceleration the speed source gives (the rate of a noisy log).
     """
     if a_known_S is not None:
-        hull = np.hypot(options.known_acceleration_relative_sigma * np.linalg.norm(a_known_S), surge_sigma_m_s2)
+        hull = options.known_acceleration_relative_sigma * np.linalg.norm(a_known_S)
     else:
         hull = options.unknown_acceleration_gain * abs(np.linalg.norm(f_S) - g)
     return float(np.sqrt(noise_var_m2_s4 / max(n_average, 1) / g**2 + options.tilt_floor_rad**2 + (hull / g) ** 2))
@@ -168,6 +169,8 @@ class Keyframe:
     vw_S: np.ndarray = field(default_factory=lambda: np.zeros(3))  # log speed times body rate, averaged likewise
     noise_tilt_sigma_rad: float = 0.0  # the part of tilt_sigma_rad the accelerometer's noise makes: white from one
     # keyframe to the next, unlike the floor and the hull terms (offline keyframes; the audit measures the floor by it)
+    along_track_sigma_rad: float = 0.0  # the speed log rate's error / g: along the heading only (offline keyframes,
+    # pipelines.ship.smoothed_speed; factors.ship.tilt_factor's along_track_ratio)
 
 
 def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
@@ -193,9 +196,10 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
         span = slice(previous, i) if previous is not None else slice(0, 0)
         has_speed = inputs.speed_m_s is not None and options.remove_known_acceleration
         sigma = tilt_sigma_rad(noise_var[i], n_average, a_known[i] if has_speed else None, f_mean[i],
-                               inputs.gravity_m_s2, options, surge_sigma[i])
+                               inputs.gravity_m_s2, options)
         frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], f_mean[i], A[i], a_known[i],
-                               has_speed, sigma, w[i], vw[i], np.sqrt(noise_var[i] / n_average) / inputs.gravity_m_s2))
+                               has_speed, sigma, w[i], vw[i], np.sqrt(noise_var[i] / n_average) / inputs.gravity_m_s2,
+                               surge_sigma[i] / inputs.gravity_m_s2 if has_speed else 0.0))
         previous = i
     return frames
 
@@ -230,10 +234,12 @@ class ShipGraph:
     def unknown_speed(self, frame: Keyframe) -> bool:
         return self.options.estimate_unknown_speed and not frame.has_speed
 
-    def tilt_factor(self, frame: Keyframe, rotation_key: int, k: int | None = None) -> gtsam.CustomFactor:
+    def tilt_factor(self, frame: Keyframe, rotation_key: int, k: int | None = None,
+                    along_track: bool = True) -> gtsam.CustomFactor:
         """The keyframe's tilt factor, with the hull acceleration as the options and the frame's speed source say
         (also what the audit evaluates its residuals with); ``k`` the keyframe's index among this graph's (for
-        the audit's terms, default the newest)."""
+        the audit's terms, default the newest); without ``along_track`` the residual is not weighed down along the
+        heading (the audit's residual in rad)."""
         options = self.options
         speed_scale = options.estimate_speed_scale and frame.has_speed
         gain = 1.0 if speed_scale else 1.0 + options.speed_scale
@@ -246,7 +252,8 @@ class ShipGraph:
         return tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), rotation_key, frame.accel_m_s2,
                            frame.A_S, surge, vw, LEVER_ARM_KEY if options.estimate_lever_arm else None,
                            SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed,
-                           [(key, phi[k]) for key, phi in self.term_columns], known)
+                           [(key, phi[k]) for key, phi in self.term_columns], known,
+                           frame.along_track_sigma_rad / frame.tilt_sigma_rad if along_track else 0.0)
 
     def tilt_start(self, frame: Keyframe) -> gtsam.Rot3:
         roll, pitch = inertial.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)

@@ -103,6 +103,29 @@ def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: n
     return u[:2], H_R, H_r, H_k
 
 
+def along_track_weight(R_W_S: np.ndarray, e: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tilt residual ``e`` (2, world horizontal) weighed down along the hull's heading: ``W e`` and the
+    Jacobians of ``W e`` on ``e`` (``W``, 2x2) and on a right perturbation ``R Exp(xi)`` of the attitude (2x3).
+
+    The speed log's rate (``dv/dt``, error ``sigma_a``) corrects the force along the heading ``h = (cos psi,
+    sin psi)`` only, so a keyframe's tilt covariance is ``sigma^2 I + (sigma_a / g)^2 h h^T``, not isotropic.
+    With ``ratio = sigma_a / (g sigma)`` the residual ``W e``, ``W = I + (s - 1) h h^T``, ``s = 1 / sqrt(1 +
+    ratio^2)``, has covariance ``sigma^2 I``: across the track it keeps the tilt's own precision.  ``W``
+    turns with the state's heading (``dW/dpsi = (s - 1)(h' h^T + h h'^T)``, ``h' = (-sin psi, cos psi)``);
+    ``det W`` does not, so the least-squares cost needs no log-determinant term.
+    """
+    s = 1.0 / np.sqrt(1.0 + ratio**2)
+    c = R_W_S[:, 0]
+    n = c[0] ** 2 + c[1] ** 2
+    psi = np.arctan2(c[1], c[0])
+    h, h_perp = np.array([np.cos(psi), np.sin(psi)]), np.array([-np.sin(psi), np.cos(psi)])
+    W = np.eye(2) + (s - 1.0) * np.outer(h, h)
+    dc = -R_W_S @ HAT_E[0]  # d c / d xi
+    dpsi = (c[0] * dc[1] - c[1] * dc[0]) / n
+    dW_e = (s - 1.0) * (h_perp * (h @ e) + h * (h_perp @ e))
+    return W @ e, W, np.outer(dW_e, dpsi)
+
+
 # --- gyro scale error on the rotation preintegrated between keyframes ---------------------------------------------
 
 def gyro_scale_correction(gyro_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
