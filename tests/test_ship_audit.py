@@ -103,7 +103,9 @@ def test_a_heading_locked_bias_on_a_braking_voyage_is_named_alone():
     more than the accelerometer's noise), and a driver computed from that same rate carries the same error, so
     terms in it fitted the log's own noise (a cubic and a product in surge acceleration named beside the heading
     term, with the rate's sigma in the tilt sigma already).  With the rate's sigma stated and the driver the log's
-    slow rate, the heading term is named, sized within 3 sigma, and nothing else."""
+    slow rate, the heading term is named, sized within 3 sigma, and nothing else.  With the rate's error weighed
+    along the heading only, a cubic in the heading scored first (p = 4.3e-12 against the harmonic's 7.4e-12) and
+    the harmonic was found on top of it: the backward elimination of library terms drops the cubic."""
     a = 0.1
     sc = ShipScenario(kind="turning", duration_s=300.0, seed=2003, lever_arm_m=(0.0, 0.0, 0.0),
                       accel_bias_of=lambda t, e: a * np.column_stack([np.cos(e[:, 2]), np.sin(e[:, 2]), 0 * t]))

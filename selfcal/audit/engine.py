@@ -543,10 +543,10 @@ class _Search:
     def run(self, max_findings: int) -> None:
         """The catalog until nothing more is accepted, then the library.  A library term that outdoes a catalog
         finding on its residual has that finding rejected, and the search starts again without it."""
-        banned: set[Candidate] = set()
+        banned: set[str] = set()  # keys of findings outdone (never offered again)
         while True:
             while len(self.findings) < max_findings:
-                catalog = [c for c in self.system.candidates() if c not in self.effects and c not in banned]
+                catalog = [c for c in self.system.candidates() if c not in self.effects and c.key not in banned]
                 if not catalog or not self.step(catalog, len(catalog), "catalog"):
                     break
             outdone = None
@@ -556,7 +556,7 @@ class _Search:
                 if note not in self.notes:
                     self.notes.append(note)
             while self.offers_terms and len(self.findings) < max_findings:
-                generic = self.generic_candidates()
+                generic = [c for c in self.generic_candidates() if c.key not in banned]
                 if not generic:
                     break
                 # True: a term was accepted; search on until none is (the first, strongest term must not end the
@@ -566,10 +566,10 @@ class _Search:
                 if outdone is not True:
                     break
             if not isinstance(outdone, Candidate):
-                outdone = self.redundant_catalog_finding()
+                outdone = self.redundant_finding()
             if outdone is None:
                 break
-            banned.add(outdone)
+            banned.add(outdone.key)
             self.restart()
         if len(self.findings) >= max_findings:
             self.notes.append(f"the search stopped at its cap of {max_findings} findings: more may be significant "
@@ -771,22 +771,27 @@ class _Search:
             return cand
         return None
 
-    def redundant_catalog_finding(self) -> Candidate | None:
-        """A catalog finding the final model no longer needs, rejected as ``outdone`` by the later findings.
+    def redundant_finding(self) -> Candidate | None:
+        """A finding the final model no longer needs, rejected as ``outdone`` by the later findings.
 
         Accepted one at a time, an effect found first may only have stood in for one found after it (a radius
-        error taking part of a range offset): refitted without it, the final model's other effects leave it
-        insignificant at the catalog's level.  The search then starts again without it (backward elimination).
+        error taking part of a range offset; a cubic in the heading, p = 4.3e-12, taking the place of the heading's
+        second harmonic, p = 7.4e-12, that was then found on top of it): refitted without it, the final model's
+        other effects leave it insignificant at its own level (a catalog effect's, or a library term's over the
+        library's effective number of tests).  The search then starts again without it (backward elimination).
         """
         found = [c for c in self.effects if c not in self.base_fit.effects]
-        level = self.alpha / max(len(self.system.candidates()), 1)
-        for cand in [c for c in found[:-1] if c.term is None]:
+        catalog_level = self.alpha / max(len(self.system.candidates()), 1)
+        library_level = None
+        for cand in found[:-1]:
+            if cand.term is not None and library_level is None:
+                library_level = self.library_alpha / self.library_tests(self.generic_candidates())
             others = self.system.fit(tuple(c for c in self.effects if c != cand))
             on_top = self.score(cand, others)
-            if on_top.p_value < level:
+            if on_top.p_value < (catalog_level if cand.term is None else library_level):
                 continue
-            finding = next(f for f in self.findings if f["effect"] == cand.effect and f["target"] == cand.label)
-            later = [f"{c.effect}@{c.label}" for c in found[found.index(cand) + 1:]]
+            finding = self.findings[found.index(cand)]  # findings are appended as effects are
+            later = [c.key if c.term is not None else f"{c.effect}@{c.label}" for c in found[found.index(cand) + 1:]]
             self.reject(Trial(cand, finding["evidence"]["statistic"], finding["evidence"]["p_value"], 0),
                         Rejection("outdone", {"p_value_on_top_of_the_rest": on_top.p_value,
                                               "outdone_by": {"findings": later}}))
