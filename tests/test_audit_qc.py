@@ -110,19 +110,31 @@ def test_range_offset_is_named_not_a_radius_or_a_range_term(seed):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_radius_changing_with_range_is_unlisted_in_range_not_a_range_offset(seed):
     """R(d) = R + slope (d - d_mid), not in the catalog.  Its look-alike, the range offset (also an apparent
-    radius that changes with range), must not be named; the term's linear coefficient is the slope."""
+    radius that changes with range), must not be named; the term's linear coefficient is the slope.
+
+    A ``sphere_radius`` beside it is the radius at the term's x0 (the basis has no constant): ``slope (x0 -
+    d_mid)`` to first order.  The returns' range is not the centre's (``d cos(alpha) - R cos(i)`` along a ray
+    alpha off the line of sight), so the model holds that value only up to terms of order ``slope R^2 / d``
+    (measured on seeds 0-7: the noise-free fit lies 0.29-0.31 mm above the first-order value, which at 5 mm of
+    noise is 1-3 reported sigma: the estimates' mean z was 1.9 against it, 0.25 against the noise-free fit).  The
+    radius is therefore compared with the same model fitted to the same scenes without noise (its pseudo-true
+    value), within 3 reported sigma, and that value with the first-order one within 0.5 mm."""
     slope, sim = -0.01, LidarSphereScenes(radius_slope=-0.01)
-    contract = audit(sim, seed)
+    result = run_audit(SphereScansAudit(scans_of(sim, seed)))
+    contract = result.to_json()
     assert "range_offset" not in names(contract)
     term = [f for f in contract["findings"] if f["effect"] == "unlisted"]
     assert [f["driver"] for f in term] == ["range"], names(contract)
     assert term[0]["form"] in ("poly1", "poly2", "poly3")
     assert within_3_sigma(term[0]["estimate"]["coefficients"][0][0], term[0]["std"]["coefficients"][0][0], slope)
-    if "sphere_radius" in names(contract):  # then it is the radius at the term's x0 (the basis has no constant)
+    if "sphere_radius" in names(contract):
         found = the(contract, "sphere_radius")
+        exact = SphereScansAudit(scans_of(LidarSphereScenes(radius_slope=slope, range_noise_m=1e-6), seed))
+        radius = next(c for c in result.final_effects if c.effect == "sphere_radius")
+        pseudo_true = exact.estimate(exact.fit(result.final_effects), radius)[0]["dR_m"]
+        assert within_3_sigma(found["estimate"]["dR_m"], found["std"]["dR_m"], pseudo_true)
         d_mid = 0.5 * (min(sim.ranges_m) + max(sim.ranges_m))
-        assert within_3_sigma(found["estimate"]["dR_m"], found["std"]["dR_m"],
-                              slope * (term[0]["estimate"]["x0"] - d_mid))
+        assert abs(pseudo_true - slope * (term[0]["estimate"]["x0"] - d_mid)) < 5e-4
 
 
 @pytest.mark.parametrize("seed", [0, 1])
