@@ -65,7 +65,7 @@ AMBIGUITY_CHI2 = 6.0
 # level is 1e-5 (about 4.4 sigma), and its false-finding rate is measured in benchmarks/audit_recall.py.
 LIBRARY_ALPHA = 1e-5
 LIBRARY_ATTEMPTS = 3  # significant library terms refitted per step, strongest evidence first
-TIE_ATTEMPTS = 2  # rivals tied in evidence with the first that passes, refitted too (the best held-out is taken)
+TIE_ATTEMPTS = 2  # library terms tied in evidence with the first that passes, refitted too (best held-out taken)
 RESCORED = 3  # library terms per step scored again with the correlation inflation of the model that holds them
 TARGET_WORSE_SIGMAS = 1.0  # a candidate is refused when its own target family's held-out whitened RSS rises by
 # more than one sampling sigma of the paired change: a veto against an effect that pays elsewhere (the IMU chain)
@@ -555,7 +555,8 @@ class _Search:
 
     def run(self, max_findings: int) -> None:
         """The catalog until nothing more is accepted, then the library.  A library term that outdoes a catalog
-        finding on its residual has that finding rejected, and the search starts again without it."""
+        finding on its residual has that finding rejected, and the search starts again without it; a finding the
+        later ones made redundant likewise (a library term is dropped where it stands: :meth:`redundant_finding`)."""
         banned: set[str] = set()  # keys of findings outdone (never offered again)
         while True:
             while len(self.findings) < max_findings:
@@ -836,7 +837,8 @@ class _Search:
         error taking part of a range offset; a cubic in the heading, p = 4.3e-12, taking the place of the heading's
         second harmonic, p = 7.4e-12, that was then found on top of it): refitted without it, the final model's
         other effects leave it insignificant at its own level (a catalog effect's, or a library term's over the
-        library's effective number of tests).  The search then starts again without it (backward elimination).
+        library's effective number of tests).  A catalog finding: the search starts again without it; a library
+        term: dropped where it stands, the search going on (:meth:`drop`).  Backward elimination.
         """
         found = [c for c in self.effects if c not in self.base_fit.effects]
         catalog_level = self.alpha / max(len(self.system.candidates()), 1)
