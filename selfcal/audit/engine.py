@@ -687,11 +687,16 @@ class _Search:
         The library only: catalog look-alikes that tie are physics the data cannot tell apart, and held-out data,
         which favour the fewer parameters, then pick at random (measured, tracker 3 cm prism lever arm, 20 seeds:
         the lever arm named on 4 instead of 13, the inclinometer bias on 16, once without its ambiguity); the
-        catalog keeps the evidence order and says the ambiguity (``ambiguous_with``)."""
+        catalog keeps the evidence order and says the ambiguity (``ambiguous_with``).
+
+        Polynomials of one driver on one family are not rivals: one holds the other, so a higher degree ties
+        whenever the lower one is the truth and held-out noise picks it now and then (measured at 3d8e954: a scan
+        range slope named as poly2/poly3 on 3 of 20 seeds, a ship bias in roll^2 as a cubic on 3 of 20); the
+        higher degree enters only by its own significance on top, at the next step."""
         def predictive(t, held):
             return held.rss + t.dof
         best, best_outcome = trial, outcome
-        for rival in [t for t in rest if trial.ties_with(t)][:TIE_ATTEMPTS]:
+        for rival in [t for t in rest if trial.ties_with(t) and not _same_polynomial(trial, t)][:TIE_ATTEMPTS]:
             if self.nested_catalog(rival.candidate):
                 continue
             rival_outcome = self.attempt(rival)
@@ -980,6 +985,14 @@ class _Search:
         remaining = remaining_structure(self.fit, self.alpha, self.inflation(self.fit), strongest)
         return AuditResult(self.system.name, self.system.base_model, self.findings, self.effects, self.base_fit,
                            self.fit, self.history, self.fits, list(self.rejected.values()), remaining, self.notes)
+
+
+def _same_polynomial(a: Trial, b: Trial) -> bool:
+    """Both polynomials (``poly1``..``poly3``) of the same single driver on the same family: nested shapes."""
+    ta, tb = a.candidate.term, b.candidate.term
+    return (ta is not None and tb is not None and ta.form.startswith("poly") and tb.form.startswith("poly")
+            and ta.second is None and tb.second is None and ta.driver == tb.driver
+            and a.candidate.label == b.candidate.label)
 
 
 def _adds_nothing_over_lower_degree(trial: Trial, trials: list[Trial]) -> bool:
