@@ -676,7 +676,7 @@ class _Search:
                 accepted = (trial, *outcome)
             break
         if phase == "library" and accepted is None and outdone is None:
-            outdone = self.outdone_by_weaker_term(trials, n_tests, significant)
+            outdone = self.outdone_by_weaker_term(trials, n_tests)
         self.history.append({"step": len(self.history) + 1, "phase": phase, "threshold": threshold,
                              "trials": [{"candidate": t.candidate.key, "F": t.f_stat, "p_value": t.p_value}
                                         for t in trials],
@@ -810,7 +810,7 @@ class _Search:
             return Rejection("implausible", {**measured, "why": why})
         return new_fit, new_held, delta_bic
 
-    def outdone_by_weaker_term(self, trials: list[Trial], n_tests: float, tried: list[Trial]) -> Candidate | None:
+    def outdone_by_weaker_term(self, trials: list[Trial], n_tests: float) -> Candidate | None:
         """A catalog finding outdone by a term that could not be named on top of it (significant at the catalog's
         level over the library's effective number of tests but not at the library's, or significant but not
         paying held-out on top): a catalog effect must explain its target at least as well as the best generic
