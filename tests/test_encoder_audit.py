@@ -92,7 +92,7 @@ def test_compressive_diode_response_is_unlisted_quadratic_in_signal(seed):
     _, out = audit(sc)
     assert [(f["effect"], f.get("driver")) for f in out["findings"]] == [("unlisted", "signal")], out["findings"]
     f = out["findings"][0]
-    assert f["form"] in ("poly2", "poly3")
+    assert f["form"] in ("poly2", "poly3")  # 3003: the quadratic alone fails the held-out margin, the cubic passes
     quadratic, sigma = f["estimate"]["coefficients"][1][0], f["std"]["coefficients"][1][0]
     assert abs(quadratic - (-c / sc.adc_max)) < 3 * sigma, (quadratic, sigma, -c / sc.adc_max)
     assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]

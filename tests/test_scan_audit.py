@@ -126,3 +126,7 @@ def test_a_higher_polynomial_adding_no_rank_over_the_lower_one_is_not_tried():
     assert not _adds_nothing_over_lower_degree(linear, [linear, quadratic, cubic])
     assert not _adds_nothing_over_lower_degree(trial("poly3", "range", 3), [linear, trial("poly2", "range", 2)])
     assert not _adds_nothing_over_lower_degree(cubic, [trial("poly2", "time", 1)])
+    # a linear term the model already holds whole (rank gain 0, reported as dof 1 with F = 0: an encoder's base gain
+    # is linear in signal) adds no direction: the quadratic's one is new (it was left out, and nothing named)
+    held = Trial(linear.candidate, 0.0, 1.0, 1)
+    assert not _adds_nothing_over_lower_degree(quadratic, [held, quadratic])

@@ -926,9 +926,12 @@ class _Search:
                           and c.term.second is None and c.sensor == cand.sensor and c.target == cand.target), None)
             if lower is None:
                 continue
-            with_lower = self.system.fit(tuple(c for c in self.effects if c != cand) + (lower,))
-            on_top = self.score(cand, with_lower)
-            if on_top.p_value < level:
+            try:
+                with_lower = self.system.fit(tuple(c for c in self.effects if c != cand) + (lower,))
+                on_top = self.score(cand, with_lower)
+            except DegenerateDataError:  # the lower degree adds no direction (an encoder's base gain holds the
+                continue  # linear part of a response in signal): the finding's degree is its lowest
+            if on_top.p_value < level or not self._accepted_in_place(cand, lower):
                 continue
             finding = self.findings[found.index(cand)]
             self.reject(Trial(cand, finding["evidence"]["statistic"], finding["evidence"]["p_value"], 0),
@@ -937,6 +940,19 @@ class _Search:
                                                              "meaning": lower.meaning}}))
             return cand
         return None
+
+    def _accepted_in_place(self, cand: Candidate, other: Candidate) -> bool:
+        """Whether ``other`` passes :meth:`attempt` on the model without ``cand`` (the state is left as it was).
+        A degree stepped down must be named in its place: on an encoder (seed 3003) the quadratic in signal failed
+        the held-out margin where the cubic had passed it, and stepping down had left nothing named."""
+        saved = self.effects, self.fit, self.held
+        self.effects = tuple(c for c in self.effects if c != cand)
+        self.fit = self.system.fit(self.effects)
+        self.held = _heldout(self.system, self.effects)
+        try:
+            return not isinstance(self.attempt(self.score(other, self.fit)), Rejection)
+        finally:
+            self.effects, self.fit, self.held = saved
 
     def reject(self, trial: Trial, rejection: Rejection) -> None:
         cand = trial.candidate
@@ -1080,9 +1096,13 @@ def _adds_nothing_over_lower_degree(trial: Trial, trials: list[Trial]) -> bool:
     if term is None or term.form not in ("poly2", "poly3"):
         return False
     lower = "poly1" if term.form == "poly2" else "poly2"
+    # a lower degree the model already holds whole (rank gain 0) is reported with dof 1 and F = 0 (the tests'
+    # max(gain, 1)): it adds no direction, so the higher degree's one is new (an encoder's diode response, whose
+    # linear part the base gain holds: the quadratic in signal was left out as adding nothing)
     return any(t.candidate.term is not None and t.candidate.term.form == lower
                and t.candidate.term.driver == term.driver and t.candidate.term.second is None
-               and t.candidate.label == trial.candidate.label and t.dof >= trial.dof for t in trials)
+               and t.candidate.label == trial.candidate.label and t.dof >= trial.dof and t.f_stat > 0.0
+               for t in trials)
 
 
 def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, previous_fit, threshold) -> list[dict]:
