@@ -162,6 +162,13 @@ def matches(finding: dict, expected) -> bool:
     return finding["effect"] == "unlisted" and finding["driver"] == expected[1] and finding["form"] in expected[2]
 
 
+def flagged_ambiguous(findings: list[dict], expected) -> bool:
+    """A finding named instead of the planted effect says, in ``ambiguous_with``, that the planted one fits as well
+    (e.g. a scan's term in time flagging the term in range it cannot be told from): honest, not a recall."""
+    return any(matches({"driver": None, "form": None, **rival}, expected)
+               for f in findings for rival in f.get("ambiguous_with", []))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     _schema.add_arguments(parser, "audit_open_world_systems")
@@ -180,7 +187,7 @@ def main() -> None:
         for suite in suites:
             if only is not None and f"{system_name}/{suite}" not in only:
                 continue
-            named = sized = checked = false = refused = 0
+            named = sized = checked = false = refused = flagged = 0
             sizes = []  # (planted size / reported sigma, named) per seed
             seconds = 0.0
             for seed in range(args.first_seed, args.first_seed + n):
@@ -201,6 +208,8 @@ def main() -> None:
                     seconds += time.perf_counter() - t0
                 hits = [f for f in findings if expected and matches(f, expected)]
                 named += bool(hits)
+                flag = bool(expected) and not hits and flagged_ambiguous(findings, expected)
+                flagged += flag
                 if z is not None:
                     sizes.append((z, bool(hits)))
                 false += sum(1 for f in findings if f not in hits and f["effect"] not in allowed)
@@ -210,12 +219,16 @@ def main() -> None:
                 others = [f"{f['effect']}:{f.get('driver', '')}:{f.get('form', '')}" for f in findings if f not in hits]
                 print(f"  {system_name}/{suite} seed {seed}: named {bool(hits)}, size "
                       f"{bool(check(hits[0])) if hits and check else '-'}"
-                      f"{f', planted {z:.1f} sigma' if z is not None else ''}, others {others}", flush=True)
+                      f"{f', planted {z:.1f} sigma' if z is not None else ''}, others {others}"
+                      f"{', flagged ambiguous with the planted term' if flag else ''}", flush=True)
             label = f"{system_name}/{suite}"
             entry = {"false_per_recording": false / n, "audit_s_per_recording": seconds / n, "refused": refused}
             if not suite.startswith("null") and suite != "scatter_null":
                 entry["recall"] = named / n
+                entry["named_as_ambiguous_look_alike"] = flagged / n
                 rows.append(_schema.row(f"{label}: recall", "fraction", named / n, None, better="higher"))
+                rows.append(_schema.row(f"{label}: a look-alike named instead, flagging the planted term as "
+                                        "ambiguous", "fraction", flagged / n, None, better="higher"))
             if sizes:
                 strong = [hit for z, hit in sizes if z >= 5.0]
                 entry["planted_sigma_median"] = float(np.median([z for z, _ in sizes]))

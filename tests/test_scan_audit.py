@@ -80,6 +80,20 @@ def test_sphere_radius_growing_with_range_is_unlisted_in_range_not_a_gyro_scale(
         assert abs(radius[0]["estimate"]["dR_m"] - expected) < 3 * radius[0]["std"]["dR_m"]
 
 
+def test_a_term_in_time_where_range_fits_as_well_names_the_range_term_as_ambiguous():
+    """Along a tunnel range and time move together (0.82 correlated on seed 2012 of the open-world suite): the
+    radius grows with range (20 mm/m) and the audit names a cubic in time, the held-out tie between the two going
+    to time.  A finding in time alone would misname the cause silently: the range term that fits about as well
+    must be in ``ambiguous_with`` with its driver and form (``"effect": "unlisted"`` alone names no term)."""
+    sim = simulate_scan(ScanScenario(length_m=8.0, n_spheres=6, sphere_radius_per_range=0.02), seed=2012)
+    result = run_audit(ScanAudit(scan_problem(scan_data(sim)))).to_json()
+    term = [f for f in result["findings"] if f["effect"] == "unlisted"]
+    assert len(term) == 1, term
+    if term[0]["driver"] != "range":
+        rivals = term[0].get("ambiguous_with", [])
+        assert any(r.get("driver") == "range" and r["form"].startswith("poly") for r in rivals), term[0]
+
+
 STEP_M = 1e-3  # the apparent radius jumps by 1 mm (half a pixel's footprint at 2 m, f = 1000 px) half-way through the
 # run; the sigma the audit reports for the step on this 6-sphere scan is 0.061 mm (16 sigma)
 

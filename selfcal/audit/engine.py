@@ -1120,9 +1120,14 @@ def _ambiguous_rivals(system, accepted_fit, trials, accepted, accepted_bic, prev
         inflation = hook(accepted_fit) if hook else 1.0
         delta_chi2 = (alternative.rss - accepted_fit.rss) / variance_factor(accepted_fit) / inflation
         if alternative.bic() - accepted_bic < AMBIGUITY_BIC or delta_chi2 < AMBIGUITY_CHI2:
-            rivals.append({"effect": trial.candidate.effect, "target": trial.candidate.label,
-                           "delta_bic_vs_accepted": alternative.bic() - accepted_bic,
-                           "delta_chi2_vs_accepted": delta_chi2})
+            rival = {"effect": trial.candidate.effect, "target": trial.candidate.label,
+                     "delta_bic_vs_accepted": alternative.bic() - accepted_bic, "delta_chi2_vs_accepted": delta_chi2}
+            term = trial.candidate.term
+            if term is not None:  # which term: "unlisted" alone names none (a scan's time and range, 0.8 correlated)
+                rival.update(driver=term.driver, form=term.form, meaning=trial.candidate.meaning)
+                if term.second:
+                    rival["second_driver"] = term.second
+            rivals.append(rival)
     return rivals
 
 
