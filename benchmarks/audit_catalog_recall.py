@@ -7,7 +7,8 @@ per system ``--null-seeds`` recordings (default 20) hide nothing.  Counted per c
 * recall: the planted effect named with the right name (and target),
 * recall where determined: over the seeds where the planted size is at least ``DETERMINED`` (5) of the sigmas the
   audit reports for it (where it was missed: fitted on top of the base and of the catalog effects named in its
-  place, a look-alike the data cannot tell from it leaving it undetermined): a miss below that is the data's,
+  place; where it was named with look-alikes flagged in ``ambiguous_with``: fitted beside those too.  A look-alike
+  the data cannot tell from it leaves it undetermined): a miss below that is the data's,
 * named as an ambiguous look-alike: a rival named instead that says, in ``ambiguous_with``, it cannot be told
   from the planted effect (not counted as a false finding, nor as recall),
 * size within 3 sigma: every entry of its estimate within 3 reported sigma of the truth (over the named ones),
@@ -394,7 +395,12 @@ def run_one(case: Case, seed: int) -> dict:
             out["z"] = ((value - truth) / sigma).tolist()
             size = np.ravel(np.asarray(p.truth if p.planted_size is None else p.planted_size, float))
             out["size_in_sigma"] = float(np.max(np.abs(size) / sigma))
-            out["determined_in_sigma"] = out["size_in_sigma"]  # the finding's sigma: beside all that was named
+            # the finding's sigma is beside all that was named; beside the look-alikes it flags as ambiguous too
+            flagged = tuple((r["effect"], r["target"]) for r in f.get("ambiguous_with", [])
+                            if r["effect"] != "unlisted")
+            out["determined_in_sigma"] = (_size_in_sigma_when_fitted(system, p, flagged + tuple(
+                (g["effect"], g["target"]) for g in findings if g is not f and g["effect"] != "unlisted"))
+                if flagged else out["size_in_sigma"])
     out["false"] = [f"{f['effect']}@{f['target']}" for i, f in enumerate(findings)
                     if i not in matched and f["effect"] not in allowed]
     return out
