@@ -320,3 +320,24 @@ def test_a_lower_degree_explaining_as_much_has_the_stronger_evidence():
     from selfcal.audit.engine import chi2_log_tail
     assert chi2_log_tail(2931.2, 1) < chi2_log_tail(2931.4, 2)
     assert chi2_log_tail(2931.2, 1) > chi2_log_tail(2931.2 + 12.0, 2)  # a real curvature (12 more) still wins
+
+
+def test_the_summary_names_library_rivals_and_the_degree_a_finding_stepped_down_to(capsys):
+    """A library rival in ``ambiguous_with`` is printed as its term (``poly1 in range``), not as ``unlisted``, which
+    names none; a cubic rejected for the lower degree says which one outdid it."""
+    from selfcal.cli.audit import print_summary
+    gain = {"unit": "m", "rms_before": 2.0, "rms_after": 1.0, "heldout_rms_before": 2.1, "heldout_rms_after": 1.1}
+    contract = {
+        "findings": [{"effect": "unlisted", "meaning": "scan0/sphere cubic in time [s]", "target": "scan0/sphere",
+                      "driver": "time", "form": "poly3", "gain": gain,
+                      "ambiguous_with": [{"effect": "unlisted", "target": "scan0/sphere", "driver": "range",
+                                          "form": "poly1", "delta_bic_vs_accepted": 1.0,
+                                          "delta_chi2_vs_accepted": 1.0}]}],
+        "rejected": [{"effect": "unlisted", "target": "imu0/tilt", "driver": "roll", "form": "poly3",
+                      "reason": "outdone", "evidence": {"p_value": 1e-20},
+                      "outdone_by": {"driver": "roll", "form": "poly2", "meaning": "imu0/tilt quadratic in roll"}}],
+        "remaining": {}}
+    print_summary(contract)
+    out = capsys.readouterr().out
+    assert "[ambiguous with poly1 in range]" in out, out
+    assert "not accepted: poly3 in roll (imu0/tilt, p=1e-20)" in out and "(poly2 in roll)" in out, out

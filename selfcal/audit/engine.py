@@ -127,6 +127,15 @@ class Candidate:
 UNLISTED = "unlisted"
 
 
+def entry_name(entry: dict) -> str:
+    """What a finding, rejection or ``ambiguous_with`` rival of the JSON names: a catalog effect, or a library term
+    as ``form in driver`` (``x second_driver`` for a product)."""
+    if entry.get("effect") != UNLISTED or not entry.get("driver"):
+        return str(entry.get("effect"))
+    second = f" x {entry['second_driver']}" if entry.get("second_driver") else ""
+    return f"{entry['form']} in {entry['driver']}{second}"
+
+
 def generic_candidate(term: Term, sensor: str, target: str, unit: str = "") -> Candidate:
     """A library term as a candidate of the search (``effect: "unlisted"``)."""
     return Candidate(UNLISTED, sensor, term.meaning(f"{sensor}/{target}", unit), target, term.driver, term)

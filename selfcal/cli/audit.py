@@ -48,20 +48,22 @@ def audit(args) -> None:
 
 def print_summary(contract: dict) -> None:
     """What the audit found, what passed the significance test but was not accepted, and what remains."""
+    from selfcal.audit.engine import entry_name
     for finding in contract["findings"]:
         gain = finding["gain"]  # a noise finding's RMS is a relative error of the Allan deviation: no unit
         unit = f" {gain['unit']}" if gain.get("unit") else " (relative)" if "metric" in gain else ""
         name = finding["effect"] if finding["effect"] != "unlisted" else f"unlisted: {finding['meaning']}"
         print(f"found {name} ({finding['target']}): RMS {gain['rms_before']:.4g} -> {gain['rms_after']:.4g}{unit}, "
               f"held-out {gain['heldout_rms_before']:.4g} -> {gain['heldout_rms_after']:.4g}{unit}"
-              + (" [ambiguous with " + ", ".join(r["effect"] for r in finding["ambiguous_with"]) + "]"
+              + (" [ambiguous with " + ", ".join(entry_name(r) for r in finding["ambiguous_with"]) + "]"
                  if finding.get("ambiguous_with") else "")
               + (f" [same as the library term {finding['same_as']['form']} in {finding['same_as']['driver']}]"
                  if finding.get("same_as") else ""))
     rejected = contract.get("rejected", [])
     for entry in rejected:
-        what = entry["effect"] if entry["effect"] != "unlisted" else f"{entry['form']} in {entry['driver']}"
-        print(f"not accepted: {what} ({entry['target']}, p={entry['evidence']['p_value']:.2g}): {REASONS[entry['reason']]}")
+        by = entry.get("outdone_by") or {}
+        print(f"not accepted: {entry_name(entry)} ({entry['target']}, p={entry['evidence']['p_value']:.2g}): "
+              f"{REASONS[entry['reason']]}" + (f" ({by['form']} in {by['driver']})" if by.get("form") else ""))
     if not contract["findings"]:
         if rejected:
             print(f"no finding accepted: {len(rejected)} candidate(s) passed the significance test but were "

@@ -10,7 +10,7 @@ import datetime as _dt
 from pathlib import Path
 
 from selfcal.audit.diagnostics import diagnose
-from selfcal.audit.engine import FAMILY_ALPHA, AuditResult, Candidate, Fit, ResidualFamily
+from selfcal.audit.engine import FAMILY_ALPHA, AuditResult, Candidate, Fit, ResidualFamily, entry_name
 from selfcal.audit.report.figures import (ambiguity_figure, figure_to_data_uri, finding_figure, plot_coordinates,
                                           png_to_data_uri, rival_coordinate)
 from selfcal.audit.report.format import finite, format_estimate
@@ -116,7 +116,7 @@ def summary(result: AuditResult, noise_findings=()) -> dict:
 def ambiguity(finding: dict) -> dict:
     """An accepted effect and the rivals the data cannot tell apart from it (``delta_bic`` None if not finite)."""
     return {"effect": finding["effect"], "target": finding.get("target", ""),
-            "rivals": [{"effect": str(r.get("effect")), "target": str(r["target"]) if r.get("target") else None,
+            "rivals": [{"effect": entry_name(r), "target": str(r["target"]) if r.get("target") else None,
                         "delta_bic": r["delta_bic_vs_accepted"] if finite(r.get("delta_bic_vs_accepted")) else None}
                        for r in finding.get("ambiguous_with") or []]}
 
@@ -148,7 +148,7 @@ def what_remains(result: AuditResult) -> dict:
         rows.append({"label": label, "verdict": r["verdict"], "term": term, "p_value": s.get("p_value"),
                      "whiteness_p": r.get("whiteness_p")})
     tests = {(r.get("strongest") or {}).get("test") for r in result.remaining.values()} - {None}
-    rejected = [{"name": r["effect"] if r["effect"] != "unlisted" else f"{r['form']} in {r['driver']}",
+    rejected = [{"name": entry_name(r),
                  "target": r["target"], "p_value": r["evidence"]["p_value"],
                  "reason": reasons.get(r["reason"], r["reason"]) + (f": {r['why']}" if r.get("why") else "")}
                 for r in result.rejected]
