@@ -182,7 +182,9 @@ def test_range_error_growing_with_incidence_is_unlisted_in_incidence(seed):
         offset = [r for r in contract["rejected"] if r["effect"] == "range_offset"]
         assert [(r["reason"], r["outdone_by"]["driver"]) for r in offset] == [("outdone", "incidence")], offset
     found = contract["findings"][0]
-    assert found["form"] in ("poly1", "poly2", "poly3")
+    # the curvature stays: stepped down at the library's level (1e-5 over its terms) the term was linear on all
+    # three seeds, the quadratic then reported as structure that remains (p 2e-6, 4.7e-6, 8.6e-5)
+    assert found["form"] in ("poly2", "poly3"), found["form"]
     assert found["gain"]["heldout_rms_after"] < found["gain"]["heldout_rms_before"]
 
 
