@@ -23,6 +23,8 @@ and call :mod:`selfcal.models.tracker` for the physics.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
@@ -215,20 +217,37 @@ def calibrated_prism_velocity_factor(noise, pose_key: int, velocity_key: int, v_
     return gtsam.CustomFactor(noise, keys, error)
 
 
+@dataclass(frozen=True)
+class AccelerometerTilt:
+    """What the inclinometer factor needs to predict the vibration disturbance from the states
+    (:func:`selfcal.models.tracker.vibration_disturbance`): the accelerometer's mean raw specific force ``f_B``
+    (m/s^2) over the inclinometer's window, ``turn_B`` (3, 3) turning it to the keyframe, the Wiener ``weight``
+    and the keyframe's IMU bias variable (ConstantBias: accelerometer part used)."""
+
+    f_B: np.ndarray
+    turn_B: np.ndarray
+    weight: float
+    bias_key: int
+
+
 def calibrated_inclinometer_factor(noise, pose_key: int, z_rad, disturbance_rad, effect_keys: dict,
-                                   fixed: dict, term_columns=()) -> gtsam.CustomFactor:
+                                   fixed: dict, term_columns=(), vibration: AccelerometerTilt | None = None
+                                   ) -> gtsam.CustomFactor:
     """Inclinometer reading ``z = (roll, pitch)`` (rad) with the audit's calibration effects
     (:func:`selfcal.models.tracker.inclinometer_reading`): ``e = pred - z``.
 
-    ``effect_keys`` maps 'bias' (2), 'scale' (1), 'accel_sensitivity' (1) to variable keys; an effect without a
-    key takes its constant from ``fixed`` (0 when absent).  Keys: the pose, then the effects in that order, then
+    The disturbance is ``disturbance_rad`` (known) plus, with ``vibration``, the one the accelerometer predicts at
+    the pose's attitude and the IMU bias variable (then a key after the pose's).  ``effect_keys`` maps 'bias'
+    (2), 'scale' (1), 'accel_sensitivity' (1) to variable keys; an effect without a key takes its constant from
+    ``fixed`` (0 when absent).  Keys: the pose, the IMU bias (with ``vibration``), the effects in that order, then
     the terms'.  ``term_columns``: the audit's generic terms, ``[(key, G)]`` with ``G`` (2, q) known (a reading
     error ``k phi(yaw)`` in roll and pitch: ``G = phi I``): ``e += G c``.
     """
-    z, d = np.asarray(z_rad, dtype=float), np.asarray(disturbance_rad, dtype=float)
+    z, d0 = np.asarray(z_rad, dtype=float), np.asarray(disturbance_rad, dtype=float)
     names = [name for name in ("bias", "scale", "accel_sensitivity") if effect_keys.get(name) is not None]
     terms = [(key, np.asarray(G, dtype=float).reshape(2, -1)) for key, G in term_columns]
-    keys = [pose_key] + [effect_keys[name] for name in names] + [key for key, _ in terms]
+    state_keys = [pose_key] + ([vibration.bias_key] if vibration is not None else [])
+    keys = state_keys + [effect_keys[name] for name in names] + [key for key, _ in terms]
     const = {"bias": np.asarray(fixed.get("bias", np.zeros(2)), dtype=float),
              "scale": float(fixed.get("scale", 0.0)), "accel_sensitivity": float(fixed.get("accel_sensitivity", 0.0))}
 
@@ -238,12 +257,22 @@ def calibrated_inclinometer_factor(noise, pose_key: int, z_rad, disturbance_rad,
         for name in names:
             v = values.atVector(effect_keys[name])
             p[name] = v if name == "bias" else float(v[0])
+        d, J_d = d0, None
+        if vibration is not None:
+            accel_bias = values.atConstantBias(vibration.bias_key).accelerometer()
+            d_vib, J_d = mt.vibration_disturbance(R, vibration.f_B, vibration.turn_B, accel_bias, vibration.weight,
+                                                  with_jacobian=True)
+            d = d0 + d_vib
         pred, J = mt.inclinometer_reading(R, d, p["bias"], p["scale"], p["accel_sensitivity"], with_jacobian=True)
         if H is not None:
-            H[0] = np.hstack([J["rotation"], np.zeros((2, 3))])
-            for i, name in enumerate(names, start=1):
+            H_rotation = J["rotation"]
+            if J_d is not None:
+                H_rotation = H_rotation + J["disturbance"] @ J_d["rotation"]
+                H[1] = np.hstack([J["disturbance"] @ J_d["accel_bias"], np.zeros((2, 3))])
+            H[0] = np.hstack([H_rotation, np.zeros((2, 3))])
+            for i, name in enumerate(names, start=len(state_keys)):
                 H[i] = J[name]
-            for i, (_, G) in enumerate(terms, start=1 + len(names)):
+            for i, (_, G) in enumerate(terms, start=len(state_keys) + len(names)):
                 H[i] = G
         return pred - z + sum((G @ values.atVector(key) for key, G in terms), np.zeros(2))
 

@@ -150,20 +150,45 @@ def beam_bearing_residual(R_W_B, p_B_W, r_C_B, R_B_C, bearing_C, basis_C, tracke
     return e, np.hstack([G @ so3.hat(d_B + r_C_B), -G])
 
 
-def tilt_of_rotation(R_W_B, with_jacobian: bool = False):
-    """(roll, pitch) (rad) of gravity seen in the body, ``tilt(R_W_B^T e_z)``; with the (2, 3) Jacobian on the
-    rotation's right perturbation ``R Exp(w)``: ``d up/dw = [up]x``, then the derivatives of
-    ``roll = atan2(u_y, u_z)``, ``pitch = atan2(-u_x, rho)``, ``rho = hypot(u_y, u_z)``."""
-    u = np.asarray(R_W_B)[2]
-    roll, pitch = tilt_from_specific_force(u)
-    z = np.array([roll, pitch])
+def tilt_of_vector(u, with_jacobian: bool = False):
+    """(roll, pitch) (rad) of the direction of ``u`` (3,), any length (:func:`tilt_from_specific_force`); with the
+    (2, 3) Jacobian ``d tilt / d u``: the derivatives of ``roll = atan2(u_y, u_z)``, ``pitch = atan2(-u_x, rho)``,
+    ``rho = hypot(u_y, u_z)`` (both unchanged by the length, so the Jacobian is orthogonal to ``u``)."""
+    u = np.asarray(u, dtype=float)
+    z = np.array(tilt_from_specific_force(u))
     if not with_jacobian:
         return z
     rho2 = u[1] ** 2 + u[2] ** 2
     rho, n2 = np.sqrt(rho2), rho2 + u[0] ** 2
-    D = np.array([[0.0, u[2] / rho2, -u[1] / rho2],
-                  [-rho / n2, u[0] * u[1] / (rho * n2), u[0] * u[2] / (rho * n2)]])
+    return z, np.array([[0.0, u[2] / rho2, -u[1] / rho2],
+                        [-rho / n2, u[0] * u[1] / (rho * n2), u[0] * u[2] / (rho * n2)]])
+
+
+def tilt_of_rotation(R_W_B, with_jacobian: bool = False):
+    """(roll, pitch) (rad) of gravity seen in the body, ``tilt(R_W_B^T e_z)``; with the (2, 3) Jacobian on the
+    rotation's right perturbation ``R Exp(w)``: ``d up/dw = [up]x``, then :func:`tilt_of_vector`'s."""
+    u = np.asarray(R_W_B)[2]
+    if not with_jacobian:
+        return tilt_of_vector(u)
+    z, D = tilt_of_vector(u, True)
     return z, D @ so3.hat(u)
+
+
+def vibration_disturbance(R_W_B, f_B, turn_B, accel_bias_B, weight: float, with_jacobian: bool = False):
+    """The inclinometer's predicted disturbance ``d = weight (tilt(f') - tilt(R_W_B))`` (2,) rad: the tilt the
+    accelerometer's mean specific force shows beyond the attitude's, times its Wiener weight.
+
+    ``f' = turn_B (f_B - accel_bias_B)``: the mean raw specific force (m/s^2) over the inclinometer's window,
+    bias-corrected and turned to the keyframe by ``turn_B`` (3, 3; ``I - c [w]x`` for a body rate ``w`` and lead
+    ``c``).  With the Jacobians ``{"rotation" (2, 3), "accel_bias" (2, 3)}``: both the attitude and the
+    accelerometer bias are states, so the disturbance follows them as a fit moves them.
+    """
+    f = np.asarray(turn_B) @ (np.asarray(f_B, dtype=float) - np.asarray(accel_bias_B, dtype=float))
+    out_f, out_R = tilt_of_vector(f, with_jacobian), tilt_of_rotation(R_W_B, with_jacobian)
+    if not with_jacobian:
+        return weight * (out_f - out_R)
+    (tilt_f, D_f), (tilt_R, J_R) = out_f, out_R
+    return weight * (tilt_f - tilt_R), {"rotation": -weight * J_R, "accel_bias": -weight * D_f @ np.asarray(turn_B)}
 
 
 def inclinometer_reading(R_W_B, disturbance_rad, bias_rad=np.zeros(2), scale: float = 0.0,
@@ -173,7 +198,7 @@ def inclinometer_reading(R_W_B, disturbance_rad, bias_rad=np.zeros(2), scale: fl
     ``z = (1 + scale) (tilt_g + (1 + accel_sensitivity) d) + bias``: ``tilt_g`` is the true tilt
     (:func:`tilt_of_rotation`), ``d`` (2,) the tilt the non-gravitational acceleration adds to the specific
     force's direction (what a perfect inclinometer also reads).  The simulator's model, term by term.  With the
-    Jacobians ``{"rotation" (2, 3), "bias" (2, 2), "scale" (2, 1), "accel_sensitivity" (2, 1)}``.
+    Jacobians ``{"rotation" (2, 3), "bias" (2, 2), "scale" (2, 1), "accel_sensitivity" (2, 1), "disturbance" (2, 2)}``.
     """
     d = np.asarray(disturbance_rad, dtype=float)
     out = tilt_of_rotation(R_W_B, with_jacobian)
@@ -183,7 +208,8 @@ def inclinometer_reading(R_W_B, disturbance_rad, bias_rad=np.zeros(2), scale: fl
     if not with_jacobian:
         return z
     return z, {"rotation": (1.0 + scale) * J, "bias": np.eye(2), "scale": inner[:, None],
-               "accel_sensitivity": ((1.0 + scale) * d)[:, None]}
+               "accel_sensitivity": ((1.0 + scale) * d)[:, None],
+               "disturbance": (1.0 + scale) * (1.0 + accel_sensitivity) * np.eye(2)}
 
 
 def prism_position_delayed(R_W_B, p_B_W, r_P_B, v_W, dt_s: float) -> np.ndarray:
