@@ -1,5 +1,5 @@
 """The open-world audit beyond the IMU: recall, size coverage and false findings of every hidden-effect suite of
-the qc, encoder, ship and scan tests, over seeds the tests do not use.
+the qc, encoder, ship, scan and tracker tests, over seeds the tests do not use.
 
 Per suite and seed one simulated recording hides one effect (or none), the audit runs blind; counted: the
 effect named as expected (catalog name, or ``unlisted`` with the expected driver and form), its size within 3
@@ -150,10 +150,59 @@ def scan_case(suite: str, seed: int):
             ("sphere_radius",))
 
 
+# --- tracker: the 6-DoF target's calibration run ------------------------------------------------------------------
+
+TRACKER_RUN = dict(duration_s=20.0, burst_rate_per_min=6.0, steer_angle_deg=(1.0, 2.0), steer_period_s=(20.0, 40.0))
+TRACKER_YAWED = dict(steer_angle_axes=(1.0, 1.0, 14.0), steer_period_s=(6.0, 15.0))  # +-51..57 deg of yaw
+RANGE_SCALE, CROSS_COUPLING, YAW_AMPLITUDE, YAW_PHASE = 0.02, 0.03, 4e-3, 0.5
+
+
+def tracker_case(suite: str, seed: int):
+    """The hidden effects of tests/test_tracker_audit_terms.py: a distance error 2 % of the range (station 10 m
+    below, target steered up and down), the inclinometer's roll picking up 3 % of its pitch (the look-alike: it
+    must not be named ``lever_arm_prism``), a second harmonic in yaw of 4 mrad (target yawed +-51..57 deg); nulls of
+    the plain and the yawed run."""
+    from selfcal.audit.tracker import TrackerAudit
+    from selfcal.pipelines.tracker import estimator_for_audit
+    from selfcal.sim.tracker import TrackerScenario
+    scenario = {"range": dict(tracker_W_m=(0.0, 0.0, -10.0), steer_position_m=(0.05, 0.1),
+                              steer_position_period_s=(4.0, 8.0), steer_position_axes=(0.0, 0.0, 1.0)),
+                "cross_coupling": dict(steer_period_s=(6.0, 15.0)),
+                "yaw_harmonic": TRACKER_YAWED, "null_yawed": TRACKER_YAWED}.get(suite, {})
+    sc = TrackerScenario(**{**TRACKER_RUN, "seed": seed, **scenario})
+    rec = sc.measurements(seed=1000 + seed)
+    tr, inc = rec.sensors["tracker0"], rec.sensors["incl0"]
+    expected = check = None
+    if suite == "range":
+        for axis, station in zip("xyz", sc.tracker_W):
+            tr.values[axis] = station + (1.0 + RANGE_SCALE) * (tr.values[axis] - station)
+        expected = ("unlisted", "range", ("poly1",))
+        check = lambda f: _within(f["estimate"]["coefficients"][0][0], f["std"]["coefficients"][0][0],  # noqa: E731
+                                  RANGE_SCALE)
+        SIZE_IN_SIGMA[suite] = ("poly1(range)@", lambda f: RANGE_SCALE / f["std"]["coefficients"][0][0])
+    elif suite == "cross_coupling":
+        inc.values["roll"] = inc.values["roll"] + CROSS_COUPLING * inc.values["pitch"]
+        expected = ("unlisted", "pitch", ("poly1",))
+        check = lambda f: _within(f["estimate"]["coefficients"][0][0], f["std"]["coefficients"][0][0],  # noqa: E731
+                                  CROSS_COUPLING)
+        SIZE_IN_SIGMA[suite] = ("poly1(pitch)@", lambda f: CROSS_COUPLING / f["std"]["coefficients"][0][0])
+    elif suite == "yaw_harmonic":
+        yaw = sc.kinematics((inc.t_ns - sc.t0_ns) * 1e-9)[5][:, 2]
+        inc.values["roll"] = inc.values["roll"] + YAW_AMPLITUDE * np.sin(2 * yaw + YAW_PHASE)
+        inc.values["pitch"] = inc.values["pitch"] - 0.5 * YAW_AMPLITUDE * np.cos(2 * yaw + YAW_PHASE)
+        expected = ("unlisted", "yaw", ("harmonic",))
+        check = lambda f: (f["estimate"]["order"] == 2.0  # noqa: E731
+                           and _within(f["estimate"]["amplitude"], f["std"]["amplitude"],
+                                       [YAW_AMPLITUDE, 0.5 * YAW_AMPLITUDE]))
+        SIZE_IN_SIGMA[suite] = ("harmonic(yaw)@2@", lambda f: YAW_AMPLITUDE / f["std"]["amplitude"][0])
+    return TrackerAudit(estimator_for_audit(rec)), expected, check, ()
+
+
 SYSTEMS = {"qc": (qc_case, ("radius", "range_offset", "range_slope", "incidence", "null", "scatter_null")),
            "encoder": (encoder_case, ("compression", "null")),
            "ship": (ship_case, ("heading", "roll2", "null", "null_turning")),
-           "scan": (scan_case, ("range", "null"))}
+           "scan": (scan_case, ("range", "null")),
+           "tracker": (tracker_case, ("range", "cross_coupling", "yaw_harmonic", "null", "null_yawed"))}
 
 
 def matches(finding: dict, expected) -> bool:
