@@ -45,7 +45,8 @@ Generic terms (:mod:`selfcal.audit.terms`, effect ``unlisted``): corrections app
 its factor, ``e += G c``: on ``tracker0/position`` a distance error ``k phi(x)`` along each sample's line of sight
 from ``tracker_W`` (m), on ``incl0/tilt`` a reading error ``k phi(x)`` in roll and pitch (rad).  Drivers: time,
 range, azimuth, elevation, roll, pitch, yaw, speed, vibration (:meth:`TrackerAudit._driver_values`) and the
-recording's auxiliary columns.  The library is scored in information form (``information_form``,
+recording's auxiliary columns, the state ones from the fit with the catalog effects named so far
+(:meth:`TrackerAudit.term_coordinates`).  The library is scored in information form (``information_form``,
 :meth:`TrackerAudit.extend_all`): one linearisation and one factorisation of the base normal equations per
 search step for every term at once.
 
@@ -238,24 +239,26 @@ class TrackerAudit:
         self._bias_prior_sigmas = np.array([estimator.options.initial_accel_bias_sigma] * 3
                                            + [estimator.options.initial_gyro_bias_sigma] * 3)
         self.channel_units = {name: unit for name, (_, _, unit) in (channels or {}).items()}
-        self._driver_values(channels or {})
+        self._channels = channels or {}
+        self._driver_values(base)
+        self._drivers_from: tuple = ()  # the catalog effects of the fit the drivers were taken from
         self._keys_of = {target: library.TermKeys(t.symbol) for target, t in TERM_TARGETS.items()}
         self._inflations: dict = {}  # residual_correlation per model
 
     # --- the generic term library ----------------------------------------------------------------------------
 
-    def _driver_values(self, channels: dict) -> None:
-        """Every driver at every residual row, from the base fit (fixed for the recording): ``m['drivers']`` per
+    def _driver_values(self, base: gtsam.Values) -> None:
+        """Every driver at every residual row, from the states ``base`` (a whole-run fit): ``m['drivers']`` per
         tracker block (arrays over its samples) and per inclinometer sample (arrays of one), and the tracker
         samples' line-of-sight unit vectors ``m['los']``.
 
-        Range, azimuth and elevation are those of the base fit's prism at the keyframe seen from the tracker
-        (``tracker_W``); roll, pitch and yaw the base fit's attitude there (yaw unwrapped over the run; for the
-        inclinometer's rows roll and pitch are its readings); speed the
-        base fit's velocity's; vibration the disturbance's standard deviation the online pass measured (rad,
-        interpolated in time to tracker samples); time that of each sample.
+        Range, azimuth and elevation are those of the fit's prism at the keyframe seen from the tracker
+        (``tracker_W``); roll, pitch and yaw the fit's attitude there (yaw unwrapped over the run; for the
+        inclinometer's rows roll and pitch are its readings); speed the fit's velocity's; vibration the
+        disturbance's standard deviation the online pass measured (rad, interpolated in time to tracker samples);
+        time that of each sample; the recording's auxiliary channels at the rows' times.
         """
-        base, n = self.base_values, self.noise
+        n, channels = self.noise, self._channels
         ypr = np.array([base.atPose3(X(k)).rotation().ypr() for k in range(self.n_keyframes)])
         attitude = {"roll": ypr[:, 2], "pitch": ypr[:, 1], "yaw": np.unwrap(ypr[:, 0])}
         t_incl = np.array([(m["t_ns"] - self.t0_ns) * 1e-9 for m in self.incl])
@@ -308,6 +311,17 @@ class TrackerAudit:
                 ("incl0", "tilt"): [m for m in self.incl if lo <= m["k"] < hi]}
 
     def term_coordinates(self, fit: Fit | None = None) -> dict[tuple[str, str], list[Coordinate]]:
+        """The drivers, taken from the states of the whole-run ``fit`` the library searches on whenever its
+        catalog effects differ from those of the fit they were taken from (the base fit's at first).  States an
+        unmodelled effect pulled carry its misfit: with a 4 mrad inclinometer offset named, the base fit's speed
+        (its velocities had followed the tilted gravity) left a distance term in `speed` beside it (p ~ 1e-9 on
+        3 of 20 runs); taken from the fit with the offset, none.  Library terms do not move them: a term's
+        columns stay those it was accepted with."""
+        if fit is not None and fit.context.get("fold") is None:
+            catalog = tuple(sorted(c.key for c in fit.effects if c.term is None))
+            if catalog != self._drivers_from:
+                self._driver_values(fit.values)
+                self._drivers_from = catalog
         def kind(name):
             return ("time" if name == "time" else "angle" if name in ANGLE_DRIVERS
                     else "channel" if name in self.channel_units else "state")
