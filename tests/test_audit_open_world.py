@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from selfcal.audit import terms as library
 from selfcal.audit.engine import run_audit
 from selfcal.audit.imu.intrinsics import ImuIntrinsicsAudit
 from selfcal.audit.imu.static import ImuStaticAudit
@@ -300,6 +301,16 @@ def test_pair_gyro_scale_drifting_with_temperature_is_a_product_of_imu1_rate_and
     within(found["estimate"]["coefficient"], found["std"]["coefficient"],
            -GYRO1_SCALE_PER_DEGC * scenario.R_imu0_imu1[:, 0], "scale drift per degC in imu0's axes")
     assert_pays(found)
+
+
+@pytest.mark.parametrize("span_rad, orders", [(0.07, []), (0.3, [2.0]), (2.0, [1.0, 2.0])])
+def test_an_angle_is_offered_the_harmonics_its_sweep_can_show(span_rad, orders):
+    """A k-th harmonic needs k * span >= 0.5 rad: over 0.07 rad (a target's pitch steered by 2 deg) sin and cos
+    of it are a line and a constant to 1e-4 of their amplitude, and the polynomials stand for them."""
+    angle = library.Coordinate("pitch", np.linspace(-span_rad / 2, span_rad / 2, 50), "rad", "angle")
+    offered = [t.params[0] for t in library.terms_for([angle], products=False) if t.form == "harmonic"]
+    assert offered == orders
+    assert {"poly1", "poly2", "poly3"} <= {t.form for t in library.terms_for([angle], products=False)}
 
 
 @pytest.mark.parametrize("k", [1, 2, 3, 6])

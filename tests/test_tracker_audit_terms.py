@@ -6,6 +6,7 @@ right driver and form, size it within 3 of its own sigmas, and never name a look
 """
 import gtsam
 import numpy as np
+import pytest
 
 from selfcal.audit.engine import run_audit
 from selfcal.audit.tracker import TrackerAudit
@@ -69,9 +70,9 @@ def test_recording_channels_become_drivers_and_a_constant_one_is_skipped():
         assert "constant" in by_name["supply"].usable
 
 
-def _plant_and_audit(plant, **scenario):
+def _plant_and_audit(plant, noise_seed=4, **scenario):
     sc = TrackerScenario(**{**CALIBRATION_RUN, **scenario})
-    rec = sc.measurements(seed=4)
+    rec = sc.measurements(seed=noise_seed)
     plant(sc, rec)
     return run_audit(TrackerAudit(estimator_for_audit(rec)))
 
@@ -103,18 +104,21 @@ def test_audit_names_a_tracker_distance_error_proportional_to_range():
     assert f["gain"]["heldout_rms_after"] < f["gain"]["heldout_rms_before"]
 
 
-def test_audit_does_not_call_an_inclinometer_cross_coupling_a_prism_lever_arm():
+@pytest.mark.parametrize("scenario_seed, noise_seed", [(3, 4), (2000, 3000)])
+def test_audit_does_not_call_an_inclinometer_cross_coupling_a_prism_lever_arm(scenario_seed, noise_seed):
     """The inclinometer's roll reading picks up 3 % of its pitch reading (a cross-axis coupling no catalog entry
     is).  Roll and pitch are steered with 6-15 s periods, so over 20 s they vary independently (with 20-40 s periods
     both are one smooth arc and a roll term fits as well as a pitch term).  It must not be named
-    ``lever_arm_prism``; it is the unlisted term linear in pitch, roll component 0.03 within 3 sigma."""
+    ``lever_arm_prism``; it is the unlisted term linear in pitch, roll component 0.03 within 3 sigma.  On the
+    second run (the benchmark's seed 2000) it was named a first harmonic in pitch, over a sweep of 0.07 rad where
+    that is a line: harmonics now need the angle to sweep k * span >= 0.5 rad."""
     coupling = 0.03
 
     def plant(sc, rec):
         inc = rec.sensors["incl0"]
         inc.values["roll"] = inc.values["roll"] + coupling * inc.values["pitch"]
 
-    result = _plant_and_audit(plant, steer_period_s=(6.0, 15.0))
+    result = _plant_and_audit(plant, noise_seed, seed=scenario_seed, steer_period_s=(6.0, 15.0))
     assert "lever_arm_prism" not in [f["effect"] for f in result.findings]
     f = _only_finding(result)
     assert (f["effect"], f["driver"], f["form"], f["target"]) == ("unlisted", "pitch", "poly1", "incl0/tilt")

@@ -21,7 +21,7 @@ poly1       ``u``                     linear in the driver                  ever
 poly2       ``u, u^2``                quadratic                             every coordinate
 poly3       ``u, u^2, u^3``           cubic (a warm-up, a saturation)       every coordinate
 step        ``H(x - x_s)``            a change point at ``x_s``             time and monotone drivers
-harmonic    ``sin k x, cos k x``      k-th harmonic of an angle (k = 1, 2); angles (k span >= 1 rad);
+harmonic    ``sin k x, cos k x``      k-th harmonic of an angle (k = 1, 2); angles (k span >= 0.5 rad);
             ``sin 2 pi f t, cos ..``  of time at the periodogram's peak     time at the residual's
                                                                           strongest f
 product     ``(x / h) v``             a state driver times a centred        state x (time, channels)
@@ -47,10 +47,11 @@ from scipy import stats
 STEP_LOCATIONS = 25  # change points tried at most: between consecutive rows of the driver's inner half (each side
 # keeps a quarter of the rows: a step near an end would fit a few rows' noise, not a change)
 ANGLE_HARMONICS = (1, 2)
-MIN_HARMONIC_SWEEP_RAD = 1.0  # a k-th harmonic is offered where the angle sweeps k * span >= 1 rad: over less, sin
-# and cos of k x are a cubic to within (k span / 2)^4 / 24 < 0.3 % of their amplitude, and the polynomials say the
-# same under the plainer name (measured: a 3 % roll-from-pitch coupling of an inclinometer, pitch steered over
-# 0.07 rad, was named a harmonic in pitch on 6 of 20 runs instead of poly1)
+MIN_HARMONIC_SWEEP_RAD = 0.5  # a k-th harmonic is offered where the angle sweeps k * span >= 0.5 rad: over less,
+# sin and cos of k x are a parabola to within (k span / 2)^3 / 6 < 0.3 % of their amplitude, and the polynomials
+# say the same under the plainer name (measured: a 3 % roll-from-pitch coupling of an inclinometer, pitch steered
+# over 0.07 rad, was named a harmonic in pitch on 4 of 13 runs instead of poly1).  The ship's heading sweeps 0.57 rad
+# and more on the turning voyages: its harmonics stay
 MIN_DISTINCT = 4  # a coordinate with fewer distinct values carries no shape to fit
 
 
