@@ -45,21 +45,21 @@ def test_frozen_custom_factors_give_the_same_online_poses(mode):
     assert np.abs(frozen[:, 3:] - nonlinear[:, 3:]).max() < 1e-6
 
 
-def test_accel_history_keeps_the_last_capacity_samples_across_batched_writes():
-    """The accelerometer ring fed one sample at a time (written to the ring in batches) against a plain list of
+def test_imu_history_keeps_the_last_capacity_samples_across_batched_writes():
+    """The IMU ring fed one sample at a time (written to the ring in batches) against a plain list of
     the same samples: every span read, at any fill, is the list's, with the oldest samples dropped past the
     capacity."""
-    from selfcal.graphs.tracker.vibration import AccelHistory
+    from selfcal.graphs.tracker.vibration import ImuHistory
     capacity = 100
-    ring, kept = AccelHistory(capacity), []
+    ring, kept = ImuHistory(capacity), []
     rng = np.random.default_rng(1)
     for j in range(700):
-        t_ns, a = 5_000_000 * j, rng.normal(size=3)
-        ring.append(t_ns, a)
+        t_ns, a = 5_000_000 * j, rng.normal(size=6)
+        ring.append(t_ns, a[:3], a[3:])
         kept = (kept + [(t_ns, a)])[-capacity:]
         if j % 37 == 0 or j in (63, 64, 65, 699):
             t_lo, t_hi = kept[0][0] + 5_000_000 * (j % 5), t_ns + 1
             expected = np.array([x for t, x in kept if t_lo <= t < t_hi])
             np.testing.assert_array_equal(ring.between(t_lo, t_hi), expected)
             if j >= 4:  # the mean of the 4 samples before the latest
-                np.testing.assert_array_equal(ring.mean_before(t_ns, 4), np.mean([x for _, x in kept[-5:-1]], axis=0))
+                np.testing.assert_array_equal(ring.mean_before(t_ns, 4), np.mean([x[:3] for _, x in kept[-5:-1]], axis=0))

@@ -16,9 +16,11 @@ effects of the catalog (:func:`selfcal.factors.tracker.calibrated_prism_factor`,
 The inclinometer's vibration term.  The base model predicts the reading as ``tilt_g + w a``: ``a`` is the tilt
 the accelerometer's mean specific force over the inclinometer's averaging window shows relative to the fit's
 attitude, corrected by the fit's accelerometer bias (both states of the factor, so ``a`` follows them as a fit
-moves them), ``w = v_d / (v_d + v_a)`` its Wiener weight (``v_d``: the vibration variance
-the online pass measured for that sample, ``v_a``: the accelerometer noise's; only where ``v_d >= 10 v_a``,
-else 0) and the sigma the conditional ``sigma^2 + (1 - w) v_d``.  So ``E[reading | accelerometer]`` is
+moves them), ``w = v_acc / (v_acc + v_a)`` its Wiener weight (``v_acc``: the vibration variance the
+accelerometer shows around the sample with the target's own rotation over the window taken out, ``v_a``: the
+accelerometer noise's; only where ``v_acc >= 10 v_a``, else 0) and the sigma the conditional ``sigma^2 + v_d -
+w v_acc`` (``v_d``: the variance the online pass gave the sample, which counts the rotation as vibration: a
+steered run's readings keep that margin).  So ``E[reading | accelerometer]`` is
 modelled, and ``incl_accel_sensitivity`` is the regression of what is left on ``w a``.  The reading (and
 the accelerometer's mean) is the specific force averaged over the inclinometer's window, so its gravity part is
 the attitude half a window before the stamp: both are turned to the keyframe with the base fit's body rate.
@@ -209,9 +211,14 @@ class TrackerAudit:
                 lead = (e.keyframe_t_ns[k] - meta["t_ns"]) * 1e-9
                 up = meta["up_B"] - h * mt.cross(w_B, meta["up_B"])
                 v_d = max(0.5 * float(np.trace(meta["cov"])) - n.incl_sigma_rad**2, 0.0)
-                # the Wiener weight only where the vibration dwarfs the accelerometer's noise: an estimated weight
-                # (v_d known to ~30 %) in the regressor biases the sensitivity towards 0 - Var(w) / E[w^2]
-                w = v_d / (v_d + v_a) if v_d >= STRONG_VIBRATION * v_a else 0.0
+                # the weight from the vibration alone: the online pass's v_d with the accelerometer's part measured
+                # without the target's rotation over the window (``accel_cov``, graphs.tracker.vibration.
+                # accel_tilt_covariance; ``own``: the inclinometer's own measure, which the rotation does not
+                # touch); only where it dwarfs the accelerometer's noise: an estimated weight (known to ~30 %) in
+                # the regressor biases the sensitivity towards 0 - Var(w) / E[w^2]
+                v_acc = 0.0 if meta.get("accel_cov") is None else 0.5 * float(np.trace(meta["accel_cov"]))
+                v_acc = min(max(v_acc, meta.get("own", 0.0)), v_d)
+                w = v_acc / (v_acc + v_a) if v_acc >= STRONG_VIBRATION * v_a else 0.0
                 # the disturbance follows the fit's attitude and accelerometer bias (states of the factor): taken
                 # once from the base fit, it stayed where an unmodelled effect had pulled them (measured: a
                 # 100-sigma inclinometer bias, once named, left a vibration term behind on 3 of 20 runs)
@@ -220,7 +227,7 @@ class TrackerAudit:
                              if w > 0.0 else None)
                 self.incl.append({"k": k, "t_ns": meta["t_ns"], "z": np.array(inertial.tilt_from_specific_force(up)),
                                   "accelerometer": vibration,
-                                  "sigma": float(np.sqrt(n.incl_sigma_rad**2 + (1 - w) * v_d)),
+                                  "sigma": float(np.sqrt(n.incl_sigma_rad**2 + max(v_d - w * v_acc, 0.0))),
                                   "vibration": float(np.sqrt(v_d))})
             elif tag == "tracker0/velocity" and meta is not None:
                 self.velocity.append({"k": ks[0], **meta})

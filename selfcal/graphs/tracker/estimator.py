@@ -141,7 +141,7 @@ class TrackerEstimator:
             return []
         self.pim.integrateMeasurement(a_prev, g_prev, dt)
         self._last_imu = (t_ns, gyro, accel)
-        self._vibration.accel.append(t_ns, accel)
+        self._vibration.imu.append(t_ns, accel, gyro)
         if t_ns - self.kf_t_ns >= self._keyframe_due_ns:
             return [self._keyframe(t_ns)]
         return []

@@ -67,6 +67,8 @@ class DeferredInclinometer:
         entry.index, entry.accel_cov = -1, cov
         if self.book.graph_log is not None:  # the audit's record (batch runs only)
             self.book.remember(factor, t_ns=m.t_ns, up_B=up_B, cov=vibration.covariance(cov),
+                               accel_cov=vibration.accelerometer(R_W_B, t_ns - int(0.5e9 * g.vibration_window_s),
+                                                                 turned=True)[0],
                                f_B=vibration.mean_specific_force(m.t_ns))
         return [(factor, "incl0/provisional")]
 
@@ -128,7 +130,11 @@ class DeferredInclinometer:
         if not keep:
             return None
         if self.book.graph_log is not None:  # the audit's record (batch runs only)
+            # cov: the factor's whole noise; accel_cov and own: the vibration alone (the accelerometer's with the
+            # target's rotation not counted, the inclinometer's own), which the audit predicts the reading's
+            # disturbance from
             self.book.remember(factor, t_ns=d.t_ns, up_B=d.up_B, cov=noise_covariance(factor),
+                               accel_cov=vibration.accelerometer(R_W_B, d.t_ns, turned=True)[0], own=causal,
                                f_B=vibration.mean_specific_force(d.t_ns))
         return factor
 
