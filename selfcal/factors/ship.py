@@ -19,7 +19,7 @@ from selfcal.models import ship
 def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lever_arm_key: int | None = None,
                 speed_scale_key: int | None = None, lever_arm_m=(0.0, 0.0, 0.0),
                 speed_key: int | None = None, offset_channels=(), known_offsets=(),
-                along_track_ratio: float = 0.0) -> gtsam.CustomFactor:
+                along_track_ratio: float = 0.0, scale_regressor=None) -> gtsam.CustomFactor:
     """Tilt of keyframe ``rotation_key`` (Rot3 R_W_S); optional Vector3 lever arm and Vector1 speed-log scale
     (without a lever-arm key, the known ``lever_arm_m`` is used).  The hull's known acceleration: the log's
     ``surge_m_s2`` (dv/dt) and ``vw_S`` (speed times body rate, :func:`selfcal.models.ship.hull_acceleration_W`).
@@ -35,7 +35,10 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lev
 
     ``along_track_ratio``: the speed log rate's error along the heading over the isotropic sigma of ``noise``
     (both in rad of tilt); the residual is weighed down along the heading by it
-    (:func:`selfcal.models.ship.along_track_weight`), so ``noise`` stays the cross-track sigma."""
+    (:func:`selfcal.models.ship.along_track_weight`), so ``noise`` stays the cross-track sigma.
+
+    ``scale_regressor`` ``(surge, vw_S)``: what the speed-log scale multiplies, when not the hull acceleration
+    removed (a smoothed one: :func:`selfcal.models.ship.level_residual`)."""
     f_S, A_S, vw_S, known_r = (np.asarray(x, dtype=float) for x in (f_S, A_S, vw_S, lever_arm_m))
     surge_m_s2 = float(surge_m_s2)
     if speed_key is not None and speed_scale_key is not None:
@@ -52,7 +55,7 @@ def tilt_factor(noise, rotation_key: int, f_S, A_S, surge_m_s2: float, vw_S, lev
         if speed_key is not None:
             k -= 1.0  # gain (1 + k) = the speed
         R_W_S = values.atRot3(rotation_key).matrix()
-        e, H_R, H_r, H_k = ship.level_residual(R_W_S, f_S, A_S, r, surge_m_s2, vw_S, k)
+        e, H_R, H_r, H_k = ship.level_residual(R_W_S, f_S, A_S, r, surge_m_s2, vw_S, k, scale_regressor)
         offset, H_offset, basis = np.zeros(2), np.zeros((2, 3)), []
         for coefficient, phi in known + [(values.atVector(key), phi) for key, phi in channels]:
             value, d_value = phi(R_W_S) if callable(phi) else (phi, np.zeros(3))

@@ -80,6 +80,9 @@ class ShipGraphOptions:
     estimate_speed_scale: bool = False
     speed_scale: float = 0.0  # known speed-log scale error (used when not estimated)
     speed_scale_prior_sigma: float = 0.2
+    speed_scale_regressor_s: float = 10.0  # the scale multiplies the hull acceleration averaged over this centred
+    # window: the gyro's noise in v w (white from one keyframe to the next) in the regressor attenuates the scale
+    # (errors in the variables: a null turning voyage read +5 % +- 1 %); turns ramp over 5-10 s and hold for longer
     angular_acceleration_window_s: float = 2.0  # Savitzky-Golay window for w_dot (centred: online, a 1 s delay)
     estimate_gyro_scale: bool = False  # the gyro's per-axis scale error s (raw = (1 + s) x true) as an unknown
     gyro_scale: tuple = (0.0, 0.0, 0.0)  # known gyro scale error (its prior mean when estimated)
@@ -171,6 +174,8 @@ class Keyframe:
     # keyframe to the next, unlike the floor and the hull terms (offline keyframes; the audit measures the floor by it)
     along_track_sigma_rad: float = 0.0  # the speed log rate's error / g: along the heading only (offline keyframes,
     # pipelines.ship.smoothed_speed; factors.ship.tilt_factor's along_track_ratio)
+    scale_regressor: tuple | None = None  # (dv/dt, v w_S) averaged over ``speed_scale_regressor_s``: what the
+    # speed log's scale multiplies (offline keyframes; None: the keyframe's own)
 
 
 def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list[Keyframe]:
@@ -191,6 +196,9 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
           if inputs.speed_m_s is not None and options.remove_known_acceleration else np.zeros_like(w))
     surge_sigma = (inputs.speed_rate_sigma_m_s2 if inputs.speed_rate_sigma_m_s2 is not None
                    else np.zeros_like(t))
+    n_regressor = max(1, int(round(options.speed_scale_regressor_s / np.median(dt))))
+    surge_regressor = uniform_filter1d(a_known[:, 0], size=n_regressor, mode="nearest")
+    vw_regressor = uniform_filter1d(vw, size=n_regressor, axis=0, mode="nearest")
     frames, previous = [], None
     for i in index:
         span = slice(previous, i) if previous is not None else slice(0, 0)
@@ -199,7 +207,8 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
                                inputs.gravity_m_s2, options)
         frames.append(Keyframe(float(t[i]), inputs.gyro_rad_s[span], dt[span], f_mean[i], A[i], a_known[i],
                                has_speed, sigma, w[i], vw[i], np.sqrt(noise_var[i] / n_average) / inputs.gravity_m_s2,
-                               surge_sigma[i] / inputs.gravity_m_s2 if has_speed else 0.0))
+                               surge_sigma[i] / inputs.gravity_m_s2 if has_speed else 0.0,
+                               (float(surge_regressor[i]), vw_regressor[i]) if has_speed else None))
         previous = i
     return frames
 
@@ -242,18 +251,21 @@ class ShipGraph:
         heading (the audit's residual in rad)."""
         options = self.options
         speed_scale = options.estimate_speed_scale and frame.has_speed
-        gain = 1.0 if speed_scale else 1.0 + options.speed_scale
-        surge, vw = gain * frame.a_known_S[0], gain * frame.vw_S
+        surge, vw = frame.a_known_S[0], frame.vw_S
+        regressor = frame.scale_regressor if frame.scale_regressor is not None else (surge, vw)
+        if not speed_scale and options.speed_scale:  # a known scale (the held-out half's)
+            surge, vw = surge + options.speed_scale * regressor[0], vw + options.speed_scale * regressor[1]
         speed = self.speed_key(frame.t_s) if self.unknown_speed(frame) else None
         if speed is not None:
-            surge, vw = 0.0, frame.w_S  # per m/s of speed
+            surge, vw, regressor = 0.0, frame.w_S, None  # per m/s of speed
         k = self.k if k is None else k
         known = [(coefficient, phi[k]) for coefficient, phi in self.known_terms]
         return tilt_factor(gtsam.noiseModel.Isotropic.Sigma(2, frame.tilt_sigma_rad), rotation_key, frame.accel_m_s2,
                            frame.A_S, surge, vw, LEVER_ARM_KEY if options.estimate_lever_arm else None,
                            SPEED_SCALE_KEY if speed_scale else None, options.lever_arm_m, speed,
                            [(key, phi[k]) for key, phi in self.term_columns], known,
-                           frame.along_track_sigma_rad / frame.tilt_sigma_rad if along_track else 0.0)
+                           frame.along_track_sigma_rad / frame.tilt_sigma_rad if along_track else 0.0,
+                           regressor if speed_scale else None)
 
     def tilt_start(self, frame: Keyframe) -> gtsam.Rot3:
         roll, pitch = inertial.tilt_from_specific_force(frame.accel_m_s2 - frame.a_known_S)

@@ -77,7 +77,7 @@ def euler_zyx(R_W_S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: np.ndarray,
-                   surge_m_s2: float = 0.0, vw_S=(0.0, 0.0, 0.0), speed_scale: float = 0.0):
+                   surge_m_s2: float = 0.0, vw_S=(0.0, 0.0, 0.0), speed_scale: float = 0.0, scale_regressor=None):
     """Horizontal part of the measured force direction in the world frame: zero when the hull's up is measured.
 
     The accelerometer sits at ``r_m_S`` from the centre of rotation, so it measures
@@ -87,19 +87,26 @@ def level_residual(R_W_S: np.ndarray, f_S: np.ndarray, A_S: np.ndarray, r_m_S: n
     ``u = unit(g)`` the tilt residual is ``e = [I2 0] u`` (rad, 2): the world-frame horizontal components of the
     corrected force direction, zero when it is the world's up.
 
+    ``scale_regressor`` ``(surge, vw_S)``: the scale multiplies the hull acceleration of these instead,
+    ``g = R (f_S - A_S r) - a_W - k a_W'``: the same quantities smoothed over seconds.  The gyro's white noise in
+    ``v w`` sits in the residual and, unsmoothed, in the regressor too, which pulls ``k`` by
+    ``-Var(noise) / Var(regressor)``: errors in the variables (a null voyage read a 5 % scale).
+
     Returns ``e`` and its Jacobians on a right perturbation ``R Exp(xi)`` (2x3), on ``r`` (2x3) and on ``k``
-    (2x1): ``du/dg = (I - u u^T) / |g|``, ``dg/dxi = -R [f_c]x - (1 + k) da_W/dxi``, ``dg/dr = -R A``,
-    ``dg/dk = -a_W``.
+    (2x1): ``du/dg = (I - u u^T) / |g|``, ``dg/dxi = -R [f_c]x - da_W/dxi - k da_W'/dxi``, ``dg/dr = -R A``,
+    ``dg/dk = -a_W'`` (``a_W' = a_W`` without a regressor).
     """
     a_W, H_a = hull_acceleration_W(R_W_S, surge_m_s2, np.asarray(vw_S, dtype=float))
+    a_k, H_ak = (a_W, H_a) if scale_regressor is None else hull_acceleration_W(
+        R_W_S, float(scale_regressor[0]), np.asarray(scale_regressor[1], dtype=float))
     f_c = f_S - A_S @ r_m_S
-    g = R_W_S @ f_c - (1.0 + speed_scale) * a_W
+    g = R_W_S @ f_c - a_W - speed_scale * a_k
     norm = np.linalg.norm(g)
     u = g / norm
     P_du = ((np.eye(3) - np.outer(u, u)) / norm)[:2]
-    H_R = P_du @ (-R_W_S @ so3.hat(f_c) - (1.0 + speed_scale) * H_a)
+    H_R = P_du @ (-R_W_S @ so3.hat(f_c) - H_a - speed_scale * H_ak)
     H_r = -P_du @ R_W_S @ A_S
-    H_k = -(P_du @ a_W).reshape(2, 1)
+    H_k = -(P_du @ a_k).reshape(2, 1)
     return u[:2], H_R, H_r, H_k
 
 
