@@ -134,6 +134,15 @@ def test_null_heave_voyages_that_showed_structure_in_time_are_silent(seed):
     assert "tilt noise floor measured" in result["notes"][0]
 
 
+@pytest.mark.parametrize("seed", [2008, 2033])
+def test_null_turning_voyages_do_not_read_a_speed_log_scale(seed):
+    """The null turning voyages of benchmarks/audit_open_world_systems.py where the audit named a speed-log scale
+    (+5.8 +- 1.6 % and +5.7 +- 1.5 % fitted alone) with the log exact: the gyro's white noise in the known hull
+    acceleration ``v w`` sat in the residual and in the scale's regressor (errors in the variables).  With the
+    regressor averaged over 10 s both stay silent."""
+    assert audit("turning", 300.0, seed=seed, lever_arm_m=(0.0, 0.0, 0.0))["findings"] == []
+
+
 def test_accelerometer_bias_quadratic_in_roll_is_unlisted_not_a_gyro_scale():
     """y accelerometer bias c roll^2 (c = 5 m/s^2 per rad^2: a cross-axis nonlinearity), heave voyage.  A gyro
     scale error also tilts the level with the roll swing, but linearly: the look-alike must not be named.  The
