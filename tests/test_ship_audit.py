@@ -139,7 +139,7 @@ def test_null_turning_voyages_do_not_read_a_speed_log_scale(seed):
     """The null turning voyages of benchmarks/audit_open_world_systems.py where the audit named a speed-log scale
     (+5.8 +- 1.6 % and +5.7 +- 1.5 % fitted alone) with the log exact: the gyro's white noise in the known hull
     acceleration ``v w`` sat in the residual and in the scale's regressor (errors in the variables).  With the
-    regressor averaged over 10 s both stay silent."""
+    regressor smoothed over 15 s both stay silent."""
     assert audit("turning", 300.0, seed=seed, lever_arm_m=(0.0, 0.0, 0.0))["findings"] == []
 
 

@@ -80,9 +80,10 @@ class ShipGraphOptions:
     estimate_speed_scale: bool = False
     speed_scale: float = 0.0  # known speed-log scale error (used when not estimated)
     speed_scale_prior_sigma: float = 0.2
-    speed_scale_regressor_s: float = 10.0  # the scale multiplies the hull acceleration averaged over this centred
-    # window: the gyro's noise in v w (white from one keyframe to the next) in the regressor attenuates the scale
-    # (errors in the variables: a null turning voyage read +5 % +- 1 %); turns ramp over 5-10 s and hold for longer
+    speed_scale_regressor_s: float = 15.0  # the scale multiplies the hull acceleration smoothed over this centred
+    # window (quadratic Savitzky-Golay): the gyro's noise in v w, in the residual and in the same keyframe's regressor,
+    # pulled the scale (errors in the variables: null turning voyages read +5.8 +- 1.6 %); a plain 10 s mean bent
+    # the 5-10 s turn ramps (a 10 % scale read 7.2 +- 0.7 % beside two terms in centripetal acceleration)
     angular_acceleration_window_s: float = 2.0  # Savitzky-Golay window for w_dot (centred: online, a 1 s delay)
     estimate_gyro_scale: bool = False  # the gyro's per-axis scale error s (raw = (1 + s) x true) as an unknown
     gyro_scale: tuple = (0.0, 0.0, 0.0)  # known gyro scale error (its prior mean when estimated)
@@ -183,6 +184,7 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     t = inputs.t_s
     index = np.searchsorted(t, np.arange(t[0], t[-1], options.keyframe_s))
     a_known = known_acceleration(inputs, options.remove_known_acceleration)
+    raw_surge = a_known[:, 0].copy()
     A = inertial.lever_arm_jacobian(inputs.gyro_rad_s, smooth_derivative(t, inputs.gyro_rad_s,
                                                                      options.angular_acceleration_window_s))
     dt = np.diff(t)
@@ -192,13 +194,15 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     A = uniform_filter1d(A, size=n_average, axis=0, mode="nearest")
     a_known = uniform_filter1d(a_known, size=n_average, axis=0, mode="nearest")
     w = uniform_filter1d(inputs.gyro_rad_s, size=n_average, axis=0, mode="nearest")
-    vw = (uniform_filter1d(inputs.speed_m_s[:, None] * inputs.gyro_rad_s, size=n_average, axis=0, mode="nearest")
-          if inputs.speed_m_s is not None and options.remove_known_acceleration else np.zeros_like(w))
+    raw_vw = (inputs.speed_m_s[:, None] * inputs.gyro_rad_s if inputs.speed_m_s is not None
+              and options.remove_known_acceleration else np.zeros_like(w))
+    vw = uniform_filter1d(raw_vw, size=n_average, axis=0, mode="nearest")
     surge_sigma = (inputs.speed_rate_sigma_m_s2 if inputs.speed_rate_sigma_m_s2 is not None
                    else np.zeros_like(t))
-    n_regressor = max(1, int(round(options.speed_scale_regressor_s / np.median(dt))))
-    surge_regressor = uniform_filter1d(a_known[:, 0], size=n_regressor, mode="nearest")
-    vw_regressor = uniform_filter1d(vw, size=n_regressor, axis=0, mode="nearest")
+    # the scale's regressor: the same quantities smoothed (models.ship.level_residual's scale_regressor)
+    n_regressor = int(round(options.speed_scale_regressor_s / np.median(dt))) | 1
+    surge_regressor, vw_regressor = (savgol_filter(x, n_regressor, 2, axis=0, mode="nearest")
+                                     for x in (raw_surge, raw_vw))
     frames, previous = [], None
     for i in index:
         span = slice(previous, i) if previous is not None else slice(0, 0)
