@@ -62,4 +62,5 @@ def test_imu_history_keeps_the_last_capacity_samples_across_batched_writes():
             expected = np.array([x for t, x in kept if t_lo <= t < t_hi])
             np.testing.assert_array_equal(ring.between(t_lo, t_hi), expected)
             if j >= 4:  # the mean of the 4 samples before the latest
-                np.testing.assert_array_equal(ring.mean_before(t_ns, 4), np.mean([x[:3] for _, x in kept[-5:-1]], axis=0))
+                np.testing.assert_array_equal(ring.mean_before(t_ns, 4),
+                                              np.mean([x[:3] for _, x in kept[-5:-1]], axis=0))
