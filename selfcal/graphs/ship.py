@@ -175,7 +175,7 @@ class Keyframe:
     # keyframe to the next, unlike the floor and the hull terms (offline keyframes; the audit measures the floor by it)
     along_track_sigma_rad: float = 0.0  # the speed log rate's error / g: along the heading only (offline keyframes,
     # pipelines.ship.smoothed_speed; factors.ship.tilt_factor's along_track_ratio)
-    scale_regressor: tuple | None = None  # (dv/dt, v w_S) averaged over ``speed_scale_regressor_s``: what the
+    scale_regressor: tuple | None = None  # (dv/dt, v w_S) smoothed over ``speed_scale_regressor_s``: what the
     # speed log's scale multiplies (offline keyframes; None: the keyframe's own)
 
 

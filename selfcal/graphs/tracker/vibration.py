@@ -192,7 +192,7 @@ class InclinometerVibration:
         # the window centred on an inclinometer sample decided up to ~1.3 s later (its own samples after it, at
         # >= 5 Hz), and the window after it, plus margin
         self.imu = ImuHistory(int(round((gating.vibration_window_s + 1.5 + 2 * keyframe_s)
-                                            * noise.imu_rate_hz)) + 8)
+                                        * noise.imu_rate_hz)) + 8)
         # (t_ns, prediction error (2,) rad) of every inclinometer sample at its arrival, in order: the own-vibration
         # estimates of a sample need diff_window samples before it and onset_window after it
         self._residuals: deque = deque(maxlen=2 * (gating.diff_window + gating.onset_window) + 24)
