@@ -200,7 +200,7 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     surge_sigma = (inputs.speed_rate_sigma_m_s2 if inputs.speed_rate_sigma_m_s2 is not None
                    else np.zeros_like(t))
     # the scale's regressor: the same quantities smoothed (models.ship.level_residual's scale_regressor)
-    n_regressor = int(round(options.speed_scale_regressor_s / np.median(dt))) | 1
+    n_regressor = max(5, int(round(options.speed_scale_regressor_s / np.median(dt))) | 1)  # > the order (2)
     surge_regressor, vw_regressor = (savgol_filter(x, n_regressor, 2, axis=0, mode="nearest")
                                      for x in (raw_surge, raw_vw))
     frames, previous = [], None
