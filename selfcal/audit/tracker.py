@@ -210,7 +210,9 @@ class TrackerAudit:
                 w_B, h = self._body_rate(k), 0.5 * n.incl_average_s
                 lead = (e.keyframe_t_ns[k] - meta["t_ns"]) * 1e-9
                 up = meta["up_B"] - h * mt.cross(w_B, meta["up_B"])
-                v_d = max(0.5 * float(np.trace(meta["cov"])) - n.incl_sigma_rad**2, 0.0)
+                # a burst's onset: the vibration the inclinometer's own samples after it show (``onset``), where the
+                # online pass's noise, measured around the sample, has none yet
+                v_d = max(0.5 * float(np.trace(meta["cov"])) - n.incl_sigma_rad**2, meta.get("onset", 0.0))
                 # the weight from the vibration alone: the online pass's v_d with the accelerometer's part measured
                 # without the target's rotation over the window (``accel_cov``, graphs.tracker.vibration.
                 # accel_tilt_covariance; ``own``: the inclinometer's own measure, which the rotation does not

@@ -39,6 +39,13 @@ class FactorBook:
         """Keep the measurement behind a factor for the audit, until the factor enters the graph."""
         self._meta[id(factor)] = meta
 
+    def annotate(self, index: int, **meta) -> None:
+        """Add to the remembered measurement of the factor at smoother ``index`` (already in the graph)."""
+        if self.graph_log is not None and index in self._log_position:
+            entry = self.graph_log[self._log_position[index]]
+            if entry[4] is not None:
+                entry[4].update(meta)
+
     def take_metas(self, factors: list) -> list:
         """The remembered measurements of the factors entering the graph (None where none); forgets the rest."""
         metas = [self._meta.pop(id(factor), None) for factor in factors]

@@ -116,15 +116,18 @@ class DeferredInclinometer:
         # white noise at the loose hint level): a fault's own transients (the state lurching after a ramp) must
         # not excuse it
         monitor = None
-        onset = vibration.own(d.t_ns, ahead=True) if g.eigen else 0.0
-        if onset > causal:
-            _, ahead = vibration.accelerometer(R_W_B, d.t_ns + int(0.5e9 * g.vibration_window_s))
-            grown = vibration.grown(base, onset, cov, d.up_B) if ahead else factor
+        onset = vibration.own(d.t_ns, ahead=True) if g.eigen or self.book.graph_log is not None else 0.0
+        ahead = onset > causal and vibration.accelerometer(R_W_B, d.t_ns + int(0.5e9 * g.vibration_window_s))[1]
+        if g.eigen and ahead:
+            grown = vibration.grown(base, onset, cov, d.up_B)
             if grown is not factor:
                 monitor = innovation(grown, d.values, d.P_pose) + (True,)
+        onset = onset if ahead else 0.0  # the audit's record: the vibration of a burst's onset, which the
+        # accelerometer corroborates after the sample but sees too weakly around it
         keep = self.gate.decide("incl0", d.t_ns, stat, nu, k, inflated=not nominal, excused=excused, monitor=monitor)
         if d.index is not None:
             if keep and nominal and d.accel_cov is None:
+                self.book.annotate(d.index, onset=onset)
                 return None  # the provisional factor stands as it is
             self.book.remove_later(d.index)
         if not keep:
@@ -134,7 +137,7 @@ class DeferredInclinometer:
             # target's rotation not counted, the inclinometer's own), which the audit predicts the reading's
             # disturbance from
             self.book.remember(factor, t_ns=d.t_ns, up_B=d.up_B, cov=noise_covariance(factor),
-                               accel_cov=vibration.accelerometer(R_W_B, d.t_ns, turned=True)[0], own=causal,
+                               accel_cov=vibration.accelerometer(R_W_B, d.t_ns, turned=True)[0], own=causal, onset=onset,
                                f_B=vibration.mean_specific_force(d.t_ns))
         return factor
 
