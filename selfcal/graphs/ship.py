@@ -80,10 +80,11 @@ class ShipGraphOptions:
     estimate_speed_scale: bool = False
     speed_scale: float = 0.0  # known speed-log scale error (used when not estimated)
     speed_scale_prior_sigma: float = 0.2
-    speed_scale_regressor_s: float = 15.0  # the scale multiplies the hull acceleration smoothed over this centred
-    # window (quadratic Savitzky-Golay): the gyro's noise in v w, in the residual and in the same keyframe's regressor,
-    # pulled the scale (errors in the variables: null turning voyages read +5.8 +- 1.6 %); a plain 10 s mean bent
-    # the 5-10 s turn ramps (a 10 % scale read 7.2 +- 0.7 % beside two terms in centripetal acceleration)
+    speed_scale_regressor_s: float = 20.0  # the scale multiplies the hull acceleration smoothed over this centred
+    # window (quartic Savitzky-Golay, SCALE_REGRESSOR_ORDER): the gyro's noise in v w, in the residual and in the same
+    # keyframe's regressor, pulled the scale (errors in the variables: null turning voyages read +5.8 +- 1.6 %); a
+    # plain 10 s mean bent the 5-10 s turn ramps (a 10 % scale read 7.2 +- 0.7 % beside two terms in centripetal
+    # acceleration); a quadratic over 15 s still took enough of them that one voyage in 20 named a term instead
     angular_acceleration_window_s: float = 2.0  # Savitzky-Golay window for w_dot (centred: online, a 1 s delay)
     estimate_gyro_scale: bool = False  # the gyro's per-axis scale error s (raw = (1 + s) x true) as an unknown
     gyro_scale: tuple = (0.0, 0.0, 0.0)  # known gyro scale error (its prior mean when estimated)
@@ -119,6 +120,10 @@ def known_acceleration(inputs: ShipInputs, remove_known: bool) -> np.ndarray:
 SPEED_RATE_WINDOW_S = 5.0
 SAVGOL_ORDER = 4  # quartic: a flat response up to the roll frequencies over a window long enough to quiet
 # the gyro noise (a noisy w_dot would bias the lever arm low: errors in the variables)
+
+
+SCALE_REGRESSOR_ORDER = 4  # the speed-log scale regressor's smoother: flat to the turns' ramps (its -3 dB at
+# ~(order + 1) / (3.2 window): 13 s periods over 20 s, where a quadratic over 15 s passes 16 s)
 
 
 def smooth_derivative(t_s: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
@@ -200,8 +205,8 @@ def keyframes_from_inputs(inputs: ShipInputs, options: ShipGraphOptions) -> list
     surge_sigma = (inputs.speed_rate_sigma_m_s2 if inputs.speed_rate_sigma_m_s2 is not None
                    else np.zeros_like(t))
     # the scale's regressor: the same quantities smoothed (models.ship.level_residual's scale_regressor)
-    n_regressor = max(5, int(round(options.speed_scale_regressor_s / np.median(dt))) | 1)  # > the order (2)
-    surge_regressor, vw_regressor = (savgol_filter(x, n_regressor, 2, axis=0, mode="nearest")
+    n_regressor = max(SCALE_REGRESSOR_ORDER + 3, int(round(options.speed_scale_regressor_s / np.median(dt))) | 1)
+    surge_regressor, vw_regressor = (savgol_filter(x, n_regressor, SCALE_REGRESSOR_ORDER, axis=0, mode="nearest")
                                      for x in (raw_surge, raw_vw))
     frames, previous = [], None
     for i in index:
