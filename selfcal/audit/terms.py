@@ -53,6 +53,9 @@ MIN_HARMONIC_SWEEP_RAD = 0.5  # a k-th harmonic is offered where the angle sweep
 # over 0.07 rad, was named a harmonic in pitch on 4 of 13 runs instead of poly1).  The ship's heading sweeps 0.57 rad
 # and more on the turning voyages: its harmonics stay
 MIN_DISTINCT = 4  # a coordinate with fewer distinct values carries no shape to fit
+NOISE_MULTIPLE = 3.0  # a coordinate whose spread is below this many times its own noise is skipped (measured:
+# a laser-tracker target at rest, its speed's sd 0.3-0.6 mm/s against a keyframe velocity noise of 0.5-0.8 mm/s,
+# named a distance term in speed at p ~ 1e-8 on 2 of 40 runs; a moving one, 50 mm/s against 1 mm/s)
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,8 @@ class Coordinate:
     kind: str = "state"  # "time", "channel" (an auxiliary column), "state" (a quantity of the system), "angle",
     # "level" (a state offered in polynomials only: its products with a channel are a drifting gain the base has)
     solo: bool = True  # False: offered only as the second factor of products (its own terms live elsewhere)
+    noise: float = 0.0  # the noise of one of its values (its unit), where the adapter knows it: a coordinate that
+    # varies by less than NOISE_MULTIPLE times that is its own noise, not a driver
 
     @property
     def usable(self) -> str | None:
@@ -74,6 +79,9 @@ class Coordinate:
             return f"{self.name}: not finite everywhere"
         if np.unique(np.round(v, 12)).size < MIN_DISTINCT:
             return f"{self.name}: constant (fewer than {MIN_DISTINCT} distinct values)"
+        if self.noise > 0.0 and np.std(v) < NOISE_MULTIPLE * self.noise:
+            unit = f" {self.unit}" if self.unit else ""
+            return f"{self.name}: varies within its own noise (sd {np.std(v):.2g} against {self.noise:.2g}{unit})"
         return None
 
 

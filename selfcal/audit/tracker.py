@@ -212,9 +212,12 @@ class TrackerAudit:
                 w_B, h = self._body_rate(k), 0.5 * n.incl_average_s
                 lead = (e.keyframe_t_ns[k] - meta["t_ns"]) * 1e-9
                 up = meta["up_B"] - h * mt.cross(w_B, meta["up_B"])
-                # a burst's onset: the vibration the inclinometer's own samples after it show (``onset``), where the
-                # online pass's noise, measured around the sample, has none yet
-                v_d = max(0.5 * float(np.trace(meta["cov"])) - n.incl_sigma_rad**2, meta.get("onset", 0.0))
+                v_d = max(0.5 * float(np.trace(meta["cov"])) - n.incl_sigma_rad**2, 0.0)
+                # a burst's onset: a sample the online pass counted quiet whose followers vibrate (``onset``: the
+                # inclinometer's own differences after it, the accelerometer after it corroborating); noise only,
+                # nothing predicts it.  Not where the online pass counted vibration already: there the differences
+                # follow the misfit as well (added there, a 4 mrad error harmonic in yaw read 6.7 +- 0.7 mrad)
+                v_onset = meta.get("onset", 0.0) if v_d == 0.0 else 0.0
                 # the weight from the vibration alone: the online pass's v_d with the accelerometer's part measured
                 # without the target's rotation over the window (``accel_cov``, graphs.tracker.vibration.
                 # accel_tilt_covariance; ``own``: the inclinometer's own measure, which the rotation does not
@@ -231,7 +234,7 @@ class TrackerAudit:
                              if w > 0.0 else None)
                 self.incl.append({"k": k, "t_ns": meta["t_ns"], "z": np.array(inertial.tilt_from_specific_force(up)),
                                   "accelerometer": vibration,
-                                  "sigma": float(np.sqrt(n.incl_sigma_rad**2 + max(v_d - w * v_acc, 0.0))),
+                                  "sigma": float(np.sqrt(n.incl_sigma_rad**2 + max(v_d - w * v_acc, 0.0) + v_onset)),
                                   "vibration": float(np.sqrt(v_d))})
             elif tag == "tracker0/velocity" and meta is not None:
                 self.velocity.append({"k": ks[0], **meta})
@@ -292,8 +295,15 @@ class TrackerAudit:
         # at p = 4e-8 on the yawed null 2008); steering at >= 4 s periods passes the smoother unchanged (< 1 %)
         v_k = np.array([base.atVector(V(k)) for k in range(self.n_keyframes)])
         window = 2 * int(round(0.5 * SPEED_SMOOTHING_S / max(np.median(np.diff(self.t_s)), 1e-3))) + 1
+        self._speed_noise = 0.0
         if self.n_keyframes >= window > 3:
-            v_k = signal.savgol_filter(v_k, window, 2, axis=0, mode="interp")
+            smoothed = signal.savgol_filter(v_k, window, 2, axis=0, mode="interp")
+            # one keyframe's velocity noise (rms over the axes) from what the smoother takes out: a fraction
+            # 1 - c0 of its variance (c0: the smoother's centre weight); a target that moves less than a few
+            # times this is at rest, and its speed is that noise (terms.Coordinate.noise)
+            c0 = signal.savgol_coeffs(window, 2)[window // 2]
+            self._speed_noise = float(np.sqrt(np.mean((v_k - smoothed) ** 2) * 3 / (1 - c0)))
+            v_k = smoothed
         speed_k = np.linalg.norm(v_k, axis=1)
 
         def at_keyframe(k, count):
@@ -348,7 +358,9 @@ class TrackerAudit:
             return ("time" if name == "time" else "angle" if name in ANGLE_DRIVERS
                     else "channel" if name in self.channel_units else "state")
         units = {**DRIVER_UNITS, **self.channel_units}
-        return {target: [Coordinate(name, v, units.get(name, ""), kind(name)) for name, v in drivers.items()]
+        noise = {"speed": self._speed_noise}
+        return {target: [Coordinate(name, v, units.get(name, ""), kind(name), noise=noise.get(name, 0.0))
+                         for name, v in drivers.items()]
                 for target, drivers in self._drivers.items()}
 
     def catalog_term(self, candidate: Candidate) -> None:

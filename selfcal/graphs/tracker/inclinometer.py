@@ -117,13 +117,15 @@ class DeferredInclinometer:
         # not excuse it
         monitor = None
         onset = vibration.own(d.t_ns, ahead=True) if g.eigen or self.book.graph_log is not None else 0.0
-        ahead = onset > causal and vibration.accelerometer(R_W_B, d.t_ns + int(0.5e9 * g.vibration_window_s))[1]
-        if g.eigen and ahead:
+        later = d.t_ns + int(0.5e9 * g.vibration_window_s)
+        if g.eigen and onset > causal and vibration.accelerometer(R_W_B, later)[1]:
             grown = vibration.grown(base, onset, cov, d.up_B)
             if grown is not factor:
                 monitor = innovation(grown, d.values, d.P_pose) + (True,)
-        onset = onset if ahead else 0.0  # the audit's record: the vibration of a burst's onset, which the
-        # accelerometer corroborates after the sample but sees too weakly around it
+        # the audit's record: the vibration of a burst's onset, which the accelerometer after the sample shows
+        # (significant, the target's rotation not counted) but sees too weakly around it
+        if onset <= causal or vibration.accelerometer(R_W_B, later, turned=True)[0] is None:
+            onset = 0.0
         keep = self.gate.decide("incl0", d.t_ns, stat, nu, k, inflated=not nominal, excused=excused, monitor=monitor)
         if d.index is not None:
             if keep and nominal and d.accel_cov is None:
