@@ -292,7 +292,7 @@ def test_a_smoothed_regressor_takes_the_attenuation_out_of_the_speed_log_scale()
     0.2 m/s^2 per keyframe, exaggerated so 400 voyages resolve the bias).  That noise is in the residual (removed
     with the acceleration) and, unsmoothed, in the scale's regressor too: the fitted scale is pulled by
     ``-Var(n) / E[(v w)^2] = -0.04 / (0.125 + 0.04) = -0.24``.  The regressor averaged over the neighbouring
-    keyframes (the keyframe's own left out; in the recordings its 0.2 s carry 3 % of the 15 s smoother's weight)
+    keyframes (the keyframe's own left out; in the recordings its 0.2 s carry 3.5 % of the 20 s smoother's weight)
     shares no noise with the residual: the scale's mean over voyages is 0 within 3 standard errors and its scatter is
     the least-squares sigma ``sigma_n / sqrt(sum regressor^2)`` (400 voyages: the scatter's own error is 3.5 %, 15 %
     allowed).  At the true attitude the residual is linear in k: one Gauss-Newton step is the fit."""
