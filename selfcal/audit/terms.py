@@ -54,8 +54,8 @@ MIN_HARMONIC_SWEEP_RAD = 0.5  # a k-th harmonic is offered where the angle sweep
 # and more on the turning voyages: its harmonics stay
 MIN_DISTINCT = 4  # a coordinate with fewer distinct values carries no shape to fit
 NOISE_MULTIPLE = 3.0  # a coordinate whose spread is below this many times its own noise is skipped (measured:
-# a laser-tracker target at rest, its speed's sd 0.3-0.6 mm/s against a keyframe velocity noise of 0.5-0.8 mm/s,
-# named a distance term in speed at p ~ 1e-8 on 2 of 40 runs; a moving one, 50 mm/s against 1 mm/s)
+# a laser-tracker target at rest, its speed's sd 0.4-0.7 mm/s against a keyframe velocity noise of 1.1-1.4 mm/s,
+# named a distance term in speed at p ~ 1e-8 on 2 of 40 yawed runs; a moving one, 50-60 mm/s against 1.2 mm/s)
 
 
 @dataclass(frozen=True)

@@ -290,7 +290,7 @@ class TrackerAudit:
                     for name, (t_ns, v, _) in channels.items()}
 
         # speed from the fit's velocity smoothed over ~1 s (quadratic Savitzky-Golay): a keyframe's own velocity
-        # carries the noise of its block's samples (~2 mm/s), the same noise as its position residuals, and where
+        # carries the noise of its block's samples (~1 mm/s), the same noise as its position residuals, and where
         # the target barely moves that noise is the speed (measured: a distance term of 0.14 m per m/s in speed
         # at p = 4e-8 on the yawed null 2008); steering at >= 4 s periods passes the smoother unchanged (< 1 %)
         v_k = np.array([base.atVector(V(k)) for k in range(self.n_keyframes)])

@@ -124,7 +124,8 @@ class DeferredInclinometer:
                 monitor = innovation(grown, d.values, d.P_pose) + (True,)
         # the audit's record: the vibration of a burst's onset, which the accelerometer after the sample shows
         # (significant, the target's rotation not counted) but sees too weakly around it
-        if onset <= causal or vibration.accelerometer(R_W_B, later, turned=True)[0] is None:
+        if (self.book.graph_log is None or onset <= causal
+                or vibration.accelerometer(R_W_B, later, turned=True)[0] is None):
             onset = 0.0
         keep = self.gate.decide("incl0", d.t_ns, stat, nu, k, inflated=not nominal, excused=excused, monitor=monitor)
         if d.index is not None:
@@ -139,8 +140,8 @@ class DeferredInclinometer:
             # target's rotation not counted, the inclinometer's own), which the audit predicts the reading's
             # disturbance from
             self.book.remember(factor, t_ns=d.t_ns, up_B=d.up_B, cov=noise_covariance(factor),
-                               accel_cov=vibration.accelerometer(R_W_B, d.t_ns, turned=True)[0], own=causal, onset=onset,
-                               f_B=vibration.mean_specific_force(d.t_ns))
+                               accel_cov=vibration.accelerometer(R_W_B, d.t_ns, turned=True)[0], own=causal,
+                               onset=onset, f_B=vibration.mean_specific_force(d.t_ns))
         return factor
 
     def _recursor_test(self, factor, k: int, t_ns: int) -> None:
